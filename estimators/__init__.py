@@ -1,0 +1,1 @@
+"""Gradient estimators (the particle estimators issue fills this registry)."""

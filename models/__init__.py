@@ -1,0 +1,1 @@
+"""Dynamics models with the predictive-Gaussian interface (``models.prediction``)."""

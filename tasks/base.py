@@ -1,0 +1,214 @@
+"""The task abstraction: physics, cost, features, initial state and noise, defined once.
+
+A task has two state spaces:
+
+- the ODE state ``z`` (``state_names``), in which the true dynamics are integrated and the
+  observation noise is added;
+- the modelled state ``s`` (``model_state_names``), which the dynamics models predict, the
+  cost is evaluated on and the policy sees. For the cart-pole ``s = z``; for the unicycle
+  ``s`` is the PILCO augmentation (contact point in the yawed frame, no wheel or turntable
+  angle).
+
+Every function here acts on ONE state; ``jax.vmap`` does the batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+
+from tasks.policies import Policy
+
+def check_vector(name: str, value: jax.Array, size: int) -> None:
+    """Raise a ValueError unless ``value`` has shape ``(size,)``."""
+    shape = jnp.shape(value)
+    if shape != (size,):
+        raise ValueError(
+            f"{name} must have shape ({size},) for one state; got {shape}. "
+            "Task functions act on one state: use jax.vmap for a batch."
+        )
+
+
+def rk4_step(f, z: jax.Array, u: jax.Array, dt: float, num_substeps: int) -> jax.Array:
+    """Integrate ``dz/dt = f(z, u)`` over ``dt`` with ``u`` held, by ``num_substeps`` RK4 steps."""
+    h = dt / num_substeps
+
+    def substep(z, _):
+        k1 = f(z, u)
+        k2 = f(z + 0.5 * h * k1, u)
+        k3 = f(z + 0.5 * h * k2, u)
+        k4 = f(z + h * k3, u)
+        return z + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
+
+    z_next, _ = jax.lax.scan(substep, z, None, length=num_substeps)
+    return z_next
+
+
+@dataclasses.dataclass(frozen=True)
+class Task:
+    """Base class of a task. Subclasses are frozen dataclasses whose fields are the options.
+
+    Subclasses set the class attributes below and implement ``derivative``, ``cost``,
+    ``policy_features``, ``gp_features``, ``default_policy`` and the initial-state and noise
+    properties; they override ``to_model_state``/``from_model_state`` when ``s != z``.
+    """
+
+    name: ClassVar[str]
+    state_names: ClassVar[tuple[str, ...]]
+    model_state_names: ClassVar[tuple[str, ...]]
+    control_names: ClassVar[tuple[str, ...]]
+    u_max: ClassVar[tuple[float, ...]]
+    mjcf: ClassVar[str | None] = None
+    substep_dt: ClassVar[float] = 0.01
+    """Length (s) of one RK4 sub-step; a control period of 0.1 s gets 10 sub-steps."""
+    presets: ClassVar[dict[str, dict[str, Any]]]
+
+    preset: str
+    dt: float
+    horizon: int
+    noise_k: float
+    num_random_trials: int
+    num_learned_trials: int
+
+    def __post_init__(self):
+        if self.preset not in self.presets:
+            raise ValueError(
+                f"unknown preset {self.preset!r} for task {self.name!r}; "
+                f"valid presets: {sorted(self.presets)}"
+            )
+        if not self.noise_k >= 0:
+            raise ValueError(f"noise_k scales the noise variance and must be >= 0; got {self.noise_k}")
+        if not self.dt > 0:
+            raise ValueError(f"dt (the control period, s) must be > 0; got {self.dt}")
+        if int(self.horizon) != self.horizon or self.horizon < 1:
+            raise ValueError(f"horizon (number of control steps) must be an integer >= 1; got {self.horizon}")
+
+    # ----- sizes -------------------------------------------------------------------------
+    @property
+    def state_dim(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def model_state_dim(self) -> int:
+        return len(self.model_state_names)
+
+    @property
+    def control_dim(self) -> int:
+        return len(self.control_names)
+
+    @property
+    def num_substeps(self) -> int:
+        """RK4 sub-steps per control period (about ``substep_dt`` seconds each)."""
+        return max(1, round(self.dt / self.substep_dt))
+
+    # ----- true dynamics on the ODE state -----------------------------------------------
+    def derivative(self, z: jax.Array, u: jax.Array) -> jax.Array:
+        """ODE right-hand side ``dz/dt``; z: (state_dim,), u: (control_dim,) -> (state_dim,)."""
+        raise NotImplementedError
+
+    def step(self, z: jax.Array, u: jax.Array) -> jax.Array:
+        """The ODE state after one control period ``dt`` with ``u`` held (zero-order hold, RK4)."""
+        check_vector("z (ODE state)", z, self.state_dim)
+        check_vector("u (control)", u, self.control_dim)
+        return rk4_step(self.derivative, z, u, self.dt, self.num_substeps)
+
+    def fallen(self, z: jax.Array) -> jax.Array:
+        """True when a real rollout must stop (the system has fallen). Default: never."""
+        return jnp.zeros((), bool)
+
+    # ----- modelled state ----------------------------------------------------------------
+    def to_model_state(self, z: jax.Array) -> jax.Array:
+        """ODE state (state_dim,) -> modelled state (model_state_dim,). Default: identity."""
+        return z
+
+    def from_model_state(self, s: jax.Array) -> jax.Array:
+        """A modelled state -> an ODE state with the same future (default: identity)."""
+        return s
+
+    def model_step(self, s: jax.Array, u: jax.Array) -> jax.Array:
+        """True dynamics on the modelled state: ``s_tp1 = to_model(step(from_model(s), u))``."""
+        check_vector("s (modelled state)", s, self.model_state_dim)
+        return self.to_model_state(self.step(self.from_model_state(s), u))
+
+    def cost(self, s: jax.Array) -> jax.Array:
+        """Per-step cost (scalar) of a modelled state s (model_state_dim,)."""
+        raise NotImplementedError
+
+    def policy_features(self, s: jax.Array) -> jax.Array:
+        """What the policy sees of a modelled state."""
+        raise NotImplementedError
+
+    def gp_features(self, s: jax.Array) -> jax.Array:
+        """What the GP sees of a modelled state (the control is appended by ``gp_inputs``)."""
+        raise NotImplementedError
+
+    def gp_inputs(self, s: jax.Array, u: jax.Array) -> jax.Array:
+        """GP input ``[gp_features(s), u]``."""
+        check_vector("u (control)", u, self.control_dim)
+        return jnp.concatenate([self.gp_features(s), u])
+
+    def gp_targets(self, s: jax.Array, s_tp1: jax.Array) -> jax.Array:
+        """GP target: the difference of modelled states over one step, ``s_tp1 - s``."""
+        return s_tp1 - s
+
+    @property
+    def gp_input_dim(self) -> int:
+        return int(jax.eval_shape(
+            lambda s, u: self.gp_inputs(s, u),
+            jax.ShapeDtypeStruct((self.model_state_dim,), jnp.float32),
+            jax.ShapeDtypeStruct((self.control_dim,), jnp.float32),
+        ).shape[0])
+
+    @property
+    def policy_feature_dim(self) -> int:
+        return int(jax.eval_shape(
+            self.policy_features, jax.ShapeDtypeStruct((self.model_state_dim,), jnp.float32)
+        ).shape[0])
+
+    # ----- initial state and noise --------------------------------------------------------
+    @property
+    def init_mean(self) -> jax.Array:
+        """Mean of the initial ODE state, (state_dim,)."""
+        raise NotImplementedError
+
+    @property
+    def init_std(self) -> jax.Array:
+        """Standard deviations of the initial ODE state (diagonal covariance), (state_dim,)."""
+        raise NotImplementedError
+
+    @property
+    def obs_noise_std(self) -> jax.Array:
+        """Observation noise std on the ODE state (variance already scaled by ``noise_k``)."""
+        raise NotImplementedError
+
+    @property
+    def model_noise_std(self) -> jax.Array:
+        """Observation noise std carried to the modelled state.
+
+        ``sqrt(diag(J diag(std^2) J^T))`` with J the Jacobian of ``to_model_state`` at the
+        initial mean: exact where the augmentation is a signed permutation there (both tasks).
+        """
+        jac = jax.jacfwd(self.to_model_state)(self.init_mean)
+        return jnp.sqrt(jnp.sum((jac * self.obs_noise_std) ** 2, axis=1))
+
+    def sample_initial(self, key: jax.Array) -> jax.Array:
+        """One initial ODE state ``z_0 ~ N(init_mean, diag(init_std^2))``."""
+        eps = jax.random.normal(key, (self.state_dim,), self.init_mean.dtype)
+        return self.init_mean + self.init_std * eps
+
+    def observe(self, z: jax.Array, key: jax.Array) -> jax.Array:
+        """A noisy observation of the ODE state: ``z + obs_noise_std * eps``."""
+        eps = jax.random.normal(key, z.shape, z.dtype)
+        return z + self.obs_noise_std.astype(z.dtype) * eps
+
+    def default_policy(self) -> Policy:
+        """The preset's policy (an ``init``/``apply`` pair)."""
+        raise NotImplementedError
+
+    @property
+    def control_limits(self) -> jax.Array:
+        """``u_max`` as an array: controls lie in ``[-u_max, u_max]``."""
+        return jnp.asarray(self.u_max)

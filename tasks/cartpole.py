@@ -1,0 +1,113 @@
+"""Cart-pole swing-up (PIPPS paper; PILCO `scenarios/cartPole`). See shared/specs/tasks.md.
+
+ODE state ``z = [x, xdot, thetadot, theta]``; theta = 0 hangs down, theta = pi is upright.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+
+from tasks.base import Task, check_vector
+from tasks.policies import Policy, rbf_policy
+
+POLE_LENGTH = 0.5  # l (m), pivot at one end
+POLE_MASS = 0.5  # m (kg)
+CART_MASS = 0.5  # M (kg)
+FRICTION = 0.1  # b (N s / m), on the cart only
+GRAVITY = 9.82  # g (m / s^2)
+
+TIP_COST_WIDTH = 0.25
+ANGLE_TARGET = jnp.pi
+
+COSTS = ("angle", "tip")
+
+
+@dataclasses.dataclass(frozen=True)
+class CartPole(Task):
+    """Cart-pole swing-up. Options: preset, cost ("angle" | "tip"), noise_k, dt, horizon, ..."""
+
+    name: ClassVar[str] = "cartpole"
+    state_names: ClassVar[tuple[str, ...]] = ("x", "xdot", "thetadot", "theta")
+    model_state_names: ClassVar[tuple[str, ...]] = state_names
+    control_names: ClassVar[tuple[str, ...]] = ("force",)
+    u_max: ClassVar[tuple[float, ...]] = (10.0,)
+    mjcf: ClassVar[str] = os.path.join(os.path.dirname(__file__), "cartpole.xml")
+    presets: ClassVar[dict] = {
+        "pipps": dict(dt=0.1, horizon=30, noise_k=1.0, cost_type="angle", num_random_trials=1,
+                      num_learned_trials=15, num_basis=50),
+        "pilco": dict(dt=0.1, horizon=40, noise_k=1.0, cost_type="tip", num_random_trials=1,
+                      num_learned_trials=15, num_basis=10),
+    }
+
+    cost_type: str = "angle"
+    num_basis: int = 50
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.cost_type not in COSTS:
+            raise ValueError(f"unknown cart-pole cost {self.cost_type!r}; valid costs: {list(COSTS)}")
+
+    def derivative(self, z, u):
+        """Uniform rod on a cart (spec "Cart-pole swing-up"); z (4,), u (1,) -> dz/dt (4,)."""
+        check_vector("z (ODE state)", z, 4)
+        check_vector("u (control)", u, 1)
+        l, m, M, b, g = POLE_LENGTH, POLE_MASS, CART_MASS, FRICTION, GRAVITY
+        _, xdot, thetadot, theta = z
+        force = u[0]
+        s, c = jnp.sin(theta), jnp.cos(theta)
+        xddot = (2 * m * l * thetadot**2 * s + 3 * m * g * s * c + 4 * force - 4 * b * xdot) / (
+            4 * (M + m) - 3 * m * c**2
+        )
+        thetaddot = (
+            -3 * m * l * thetadot**2 * s * c - 6 * (M + m) * g * s - 6 * (force - b * xdot) * c
+        ) / (4 * l * (M + m) - 3 * m * l * c**2)
+        return jnp.stack([xdot, xddot, thetaddot, thetadot])
+
+    def cost(self, s):
+        """Angle cost ``1 - exp(-(x^2 + (theta - pi)^2))`` (raw angle) or the tip cost
+        ``1 - exp(-d^2 / (2 * 0.25^2))``, ``d^2 = (x + l sin th)^2 + l^2 (cos th + 1)^2``."""
+        check_vector("s (modelled state)", s, 4)
+        x, theta = s[0], s[3]
+        if self.cost_type == "angle":
+            return 1.0 - jnp.exp(-(x**2 + (theta - ANGLE_TARGET) ** 2))
+        d2 = (x + POLE_LENGTH * jnp.sin(theta)) ** 2 + POLE_LENGTH**2 * (jnp.cos(theta) + 1.0) ** 2
+        return 1.0 - jnp.exp(-d2 / (2.0 * TIP_COST_WIDTH**2))
+
+    def policy_features(self, s):
+        """``[x, xdot, thetadot, sin(theta), cos(theta)]``, (5,)."""
+        check_vector("s (modelled state)", s, 4)
+        return jnp.stack([s[0], s[1], s[2], jnp.sin(s[3]), jnp.cos(s[3])])
+
+    gp_features = policy_features
+
+    @property
+    def init_mean(self):
+        return jnp.zeros(4)
+
+    @property
+    def init_std(self):
+        return jnp.full(4, 0.1)
+
+    @property
+    def obs_noise_std(self):
+        """pipps: sqrt(k) * [0.01 m, 0.1 m/s, 10 deg/s, 1 deg]; pilco: sqrt(k) * 0.01 on all four."""
+        if self.preset == "pipps":
+            std = jnp.array([0.01, 0.1, jnp.deg2rad(10.0), jnp.deg2rad(1.0)])
+        else:
+            std = jnp.full(4, 0.01)
+        return jnp.sqrt(self.noise_k) * std
+
+    def sample_policy_features(self, key: jax.Array, n: int) -> jax.Array:
+        """Features of ``n`` initial states, (n, 5): the RBF policy's initial centres."""
+        z0 = jax.vmap(self.sample_initial)(jax.random.split(key, n))
+        return jax.vmap(lambda z: self.policy_features(self.to_model_state(z)))(z0)
+
+    def default_policy(self) -> Policy:
+        """RBF network (``num_basis`` basis functions), length-scales [1, 1, 1, 0.7, 0.7]."""
+        return rbf_policy(self.num_basis, self.u_max, self.sample_policy_features,
+                          (1.0, 1.0, 1.0, 0.7, 0.7))
