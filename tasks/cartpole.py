@@ -85,6 +85,15 @@ class CartPole(Task):
 
     gp_features = policy_features
 
+    def to_mujoco(self, z):
+        """ODE state -> MuJoCo ``(qpos, qvel)`` of ``cartpole.xml``: ``([x, theta], [xdot, thetadot])``."""
+        check_vector("z (ODE state)", z, 4)
+        return jnp.stack([z[0], z[3]]), jnp.stack([z[1], z[2]])
+
+    def from_mujoco(self, qpos, qvel):
+        """MuJoCo ``(qpos, qvel)`` -> ODE state ``[x, xdot, thetadot, theta]``."""
+        return jnp.stack([qpos[0], qvel[0], qvel[1], qpos[1]])
+
     @property
     def init_mean(self):
         return jnp.zeros(4)

@@ -1,0 +1,184 @@
+"""Tasks: dynamics against the reference vectors, costs, features, augmentation, bad input."""
+
+import math
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+import tasks
+from conftest import TESTDATA
+
+
+def reference(name):
+    task = tasks.make(name)
+    df = pd.read_csv(os.path.join(TESTDATA, f"{name}_dynamics.csv"))
+    n, m = task.state_dim, task.control_dim
+    z, u = df.iloc[:, :n].to_numpy(), df.iloc[:, n : n + m].to_numpy()
+    dz = df[[c for c in df.columns if c.startswith("d_")]].to_numpy()
+    z_next = df[[c for c in df.columns if c.startswith("next_")]].to_numpy()
+    return task, z, u, dz, z_next
+
+
+@pytest.mark.parametrize("name", ["cartpole", "unicycle"])
+def test_derivative_matches_reference(name):
+    task, z, u, dz, _ = reference(name)
+    got = jax.jit(jax.vmap(task.derivative))(z, u)
+    np.testing.assert_allclose(got, dz, rtol=1e-9, atol=0)
+
+
+@pytest.mark.parametrize("name", ["cartpole", "unicycle"])
+def test_step_matches_reference(name):
+    """RK4 (cart-pole: 10 sub-steps of 0.01 s; unicycle: 20 of 0.005 s) against the adaptive
+    solver's state after 0.1 s, 1e-5 absolute on every component."""
+    task, z, u, _, z_next = reference(name)
+    got = jax.jit(jax.vmap(task.step))(z, u)
+    np.testing.assert_allclose(got, z_next, rtol=0, atol=1e-5)
+
+
+def test_reference_columns_are_in_ode_order():
+    for name in ("cartpole", "unicycle"):
+        task = tasks.make(name)
+        df = pd.read_csv(os.path.join(TESTDATA, f"{name}_dynamics.csv"))
+        header = [c.replace("dx", "xdot").replace("dtheta", "thetadot") if name == "cartpole" else c
+                  for c in df.columns[: task.state_dim]]
+        assert tuple(header) == task.state_names
+
+
+# ----- costs at hand-computed points -------------------------------------------------------
+
+def test_cartpole_angle_cost():
+    task = tasks.make("cartpole", cost="angle")
+    assert float(task.cost(jnp.array([0.0, 3.0, -2.0, math.pi]))) == pytest.approx(0.0, abs=1e-15)
+    # x = 1, theta = pi: 1 - exp(-1); velocities do not count (Q = diag(1, 1, 0, 0)).
+    assert float(task.cost(jnp.array([1.0, 5.0, 5.0, math.pi]))) == pytest.approx(1 - math.exp(-1), rel=1e-12)
+    # Raw angle, not wrapped: theta = -pi is 2 pi from the target.
+    assert float(task.cost(jnp.array([0.0, 0.0, 0.0, -math.pi]))) == pytest.approx(1 - math.exp(-4 * math.pi**2), rel=1e-12)
+
+
+def test_cartpole_tip_cost():
+    task = tasks.make("cartpole", cost="tip")
+    assert float(task.cost(jnp.array([0.0, 0.0, 0.0, math.pi]))) == pytest.approx(0.0, abs=1e-15)
+    # Hanging down at x = 0: d^2 = l^2 (1 + 1)^2 = 1, c = 1 - exp(-1 / (2 * 0.0625)) = 1 - exp(-8).
+    assert float(task.cost(jnp.zeros(4))) == pytest.approx(1 - math.exp(-8), rel=1e-12)
+    # x = 0.1, theta = pi/2: d^2 = (0.1 + 0.5)^2 + 0.25 = 0.61, c = 1 - exp(-0.61 / 0.125).
+    assert float(task.cost(jnp.array([0.1, 0.0, 0.0, math.pi / 2]))) == pytest.approx(1 - math.exp(-0.61 / 0.125), rel=1e-12)
+
+
+def test_unicycle_cost():
+    task = tasks.make("unicycle")
+    assert float(task.cost(jnp.zeros(10))) == pytest.approx(0.0, abs=1e-15)
+    # Upright (theta = psif = 0) with the contact point at (xc, yc) = (0.2, -0.4), yaw pi:
+    # dx = 0.2, dy = -0.4, dz = 0, phi / (4 pi) = 1/4.
+    s = jnp.zeros(10).at[5].set(0.2).at[6].set(-0.4).at[8].set(math.pi)
+    expected = 1 - math.exp(-0.5 * (0.5 * 0.04 + 0.5 * 0.16 + 0.0625))
+    assert float(task.cost(s)) == pytest.approx(expected, rel=1e-12)
+    # Frame pitched by psif = pi/2: dx = -0.81, dz = 0.22 + 0.81 - 0.22 - 0 = 0.81.
+    s = jnp.zeros(10).at[9].set(math.pi / 2)
+    expected = 1 - math.exp(-0.5 * (0.5 * 0.81**2 + 8 * 0.81**2))
+    assert float(task.cost(s)) == pytest.approx(expected, rel=1e-12)
+
+
+# ----- features and augmentation --------------------------------------------------------
+
+def test_cartpole_features():
+    task = tasks.make("cartpole")
+    s = jnp.array([0.3, -1.0, 2.0, math.pi / 6])
+    expected = [0.3, -1.0, 2.0, 0.5, math.sqrt(3) / 2]
+    np.testing.assert_allclose(task.policy_features(s), expected, rtol=1e-14)
+    np.testing.assert_allclose(task.gp_inputs(s, jnp.array([4.0])), expected + [4.0], rtol=1e-14)
+    assert task.gp_input_dim == 6 and task.policy_feature_dim == 5
+    np.testing.assert_allclose(task.gp_targets(s, s + 1.0), jnp.ones(4))
+
+
+def test_unicycle_augmentation():
+    task = tasks.make("unicycle")
+    z = jnp.arange(1.0, 13.0) / 10  # rates 0.1..0.5, x 0.6, y 0.7, angles 0.8..1.2
+    z = z.at[8].set(math.pi / 2)  # yaw phi = pi/2: R = -[[0, 1], [-1, 0]]
+    s = task.to_model_state(z)
+    # [xc, yc] = -[[0, 1], [-1, 0]] [0.6, 0.7] = [-0.7, 0.6]
+    expected = [0.1, 0.2, 0.3, 0.4, 0.5, -0.7, 0.6, 0.8, math.pi / 2, 1.1]
+    np.testing.assert_allclose(s, expected, rtol=1e-14, atol=1e-15)
+    # GP features drop the yaw; the policy sees all of s.
+    np.testing.assert_allclose(task.gp_features(s), np.delete(np.asarray(expected), 8), atol=1e-15)
+    assert task.gp_input_dim == 11 and task.policy_feature_dim == 10
+    # The lift keeps s and zeroes the wheel and turntable angles.
+    lifted = task.from_model_state(s)
+    np.testing.assert_allclose(lifted, z.at[9].set(0.0).at[11].set(0.0), atol=1e-15)
+
+
+def test_unicycle_model_step_is_closed():
+    """The dynamics do not depend on psiw, psit or the yaw-frame origin: stepping the modelled
+    state equals augmenting the stepped ODE state."""
+    task = tasks.make("unicycle")
+    key = jax.random.key(0)
+    z = 0.2 * jax.random.normal(key, (12,))
+    u = jnp.array([3.0, -10.0])
+    np.testing.assert_allclose(task.model_step(task.to_model_state(z), u),
+                               task.to_model_state(task.step(z, u)), atol=1e-12)
+
+
+def test_unicycle_fall_test():
+    task = tasks.make("unicycle")
+    upright = jnp.zeros(12)
+    assert not bool(task.fallen(upright))
+    assert bool(task.fallen(upright.at[7].set(1.6)))  # roll past pi/2
+    assert bool(task.fallen(upright.at[10].set(-1.6)))  # frame pitch past pi/2
+    assert not bool(task.fallen(upright.at[8].set(3.0)))  # yaw does not count
+
+
+def test_noise_and_presets():
+    cp = tasks.make("cartpole")
+    std = [0.01, 0.1, math.radians(10), math.radians(1)]  # [x, xdot, thetadot, theta]
+    np.testing.assert_allclose(cp.obs_noise_std, std, rtol=1e-12)
+    np.testing.assert_allclose(tasks.make("cartpole", noise_k=4.0).obs_noise_std, 2 * np.asarray(std), rtol=1e-12)
+    np.testing.assert_allclose(cp.model_noise_std, std, rtol=1e-12)
+    assert (cp.horizon, cp.num_basis, cp.cost_type) == (30, 50, "angle")
+    pilco = tasks.make("cartpole", preset="pilco")
+    assert (pilco.horizon, pilco.num_basis, pilco.cost_type) == (40, 10, "tip")
+    np.testing.assert_allclose(pilco.obs_noise_std, 0.01)
+    uni = tasks.make("unicycle")
+    assert (uni.dt, uni.horizon, uni.num_random_trials, uni.num_learned_trials) == (0.1, 20, 5, 30)
+    assert tasks.make("unicycle", preset="pilco").horizon == 67
+    np.testing.assert_allclose(uni.model_noise_std, [0.01] * 5 + [0.003] * 5, rtol=1e-12)
+
+
+# ----- bad input -----------------------------------------------------------------------------
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda: tasks.make("pendulum"), "valid tasks: \\['cartpole', 'unicycle'\\]"),
+        (lambda: tasks.make("cartpole", friction=0.2), "valid options"),
+        (lambda: tasks.make("cartpole", preset="paper"), "valid presets"),
+        (lambda: tasks.make("cartpole", cost="distance"), "valid costs"),
+        (lambda: tasks.make("cartpole", noise_k=-1.0), "noise_k"),
+        (lambda: tasks.make("unicycle", horizon=0), "horizon"),
+    ],
+)
+def test_bad_options(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
+
+
+def test_cost_option_is_listed():
+    assert "cost" in tasks.options("cartpole") and "noise_k" in tasks.options("unicycle")
+
+
+def test_wrong_shapes():
+    cp, uni = tasks.make("cartpole"), tasks.make("unicycle")
+    with pytest.raises(ValueError, match="z \\(ODE state\\) must have shape \\(4,\\)"):
+        cp.step(jnp.zeros(5), jnp.zeros(1))
+    with pytest.raises(ValueError, match="u \\(control\\) must have shape \\(1,\\)"):
+        cp.step(jnp.zeros(4), jnp.zeros(2))
+    with pytest.raises(ValueError, match="u \\(control\\) must have shape \\(2,\\)"):
+        uni.derivative(jnp.zeros(12), jnp.zeros(1))
+    with pytest.raises(ValueError, match="use jax.vmap"):
+        cp.cost(jnp.zeros((3, 4)))
+    with pytest.raises(ValueError, match="z \\(ODE state\\) must have shape \\(12,\\)"):
+        uni.to_model_state(jnp.zeros(10))
+    with pytest.raises(ValueError, match="s \\(modelled state\\) must have shape \\(10,\\)"):
+        uni.from_model_state(jnp.zeros(12))
