@@ -1,1 +1,37 @@
-"""Gradient estimators (the particle estimators issue fills this registry)."""
+"""Gradient estimators and their registry: ``estimators.make(name, **overrides)``.
+
+Every estimator is called as ``est(problem, theta, key, num_particles) -> Estimate`` (see
+``estimators.base``); ``num_particles`` fixes shapes, so jit with it static.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from estimators.base import Estimate, FixedNoise, Problem, task_problem
+from estimators.likelihood_ratio import LikelihoodRatio
+from estimators.reparameterisation import Reparameterisation
+from estimators.total_propagation import TotalPropagation
+
+REGISTRY: dict[str, Callable[..., object]] = {
+    "rp": lambda **kw: Reparameterisation(**kw),
+    "rp_fs": lambda noise_seed=0: FixedNoise(Reparameterisation(), noise_seed),
+    "gr": lambda **kw: Reparameterisation(gaussian_resampling=True, **kw),
+    "gr_fs": lambda noise_seed=0: FixedNoise(Reparameterisation(gaussian_resampling=True), noise_seed),
+    "lr": lambda **kw: LikelihoodRatio("lr", **kw),
+    "biw_lr": lambda **kw: LikelihoodRatio("biw_lr", **kw),
+    "tp": lambda **kw: TotalPropagation(**kw),
+}
+
+
+def make(name: str, **overrides):
+    """The estimator ``name`` (one of ``REGISTRY``), with its options overridden."""
+    if name not in REGISTRY:
+        raise ValueError(f"unknown estimator {name!r}; valid estimators: {sorted(REGISTRY)}")
+    try:
+        return REGISTRY[name](**overrides)
+    except TypeError as err:
+        raise ValueError(f"bad option for estimator {name!r}: {err}") from None
+
+
+__all__ = ["Estimate", "Problem", "REGISTRY", "make", "task_problem"]

@@ -1,0 +1,194 @@
+"""What every particle estimator shares: the problem, the estimate, the particle transition.
+
+Particle rollout (PIPPS, section "Particle Model-Based Policy Search"): ``s_0 ~ p(s_0)``; for
+t = 0..T-1: ``u_t = pi(features(s_t); theta)``, ``zeta_{t+1} = (m, sd)`` from the model's
+prediction, ``s_{t+1} = m + sd * eps``; the objective is ``J = sum_{t=1..T} E[c(s_t)]``,
+estimated by the mean over particles of each particle's return.
+
+Shapes: P particles, T steps, S modelled-state dims; scan outputs are (T, P, S).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from models.prediction import Model
+from tasks.base import Task
+from tasks.policies import Policy
+
+
+@functools.partial(
+    jax.tree_util.register_dataclass,
+    data_fields=["model_params"],
+    meta_fields=["model", "policy", "cost", "features", "initial_state", "horizon",
+                 "model_var_scale", "noise_var_scale"],
+)
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """A particle policy-search problem: model, policy, cost and initial distribution.
+
+    ``model_var_scale`` and ``noise_var_scale`` multiply the predicted model and noise
+    variances before sampling (the paper's variants: TP-sigma_f samples only the learned noise,
+    ``model_var_scale=0``; TP+sigma_n uses ``noise_var_scale=100``). A pytree whose only data
+    is ``model_params`` (e.g. the GP posterior), so it can be passed to jitted functions.
+    """
+
+    model: Model
+    model_params: Any
+    policy: Policy
+    cost: Callable[[jax.Array], jax.Array]
+    features: Callable[[jax.Array], jax.Array]
+    initial_state: Callable[[jax.Array], jax.Array]
+    horizon: int
+    model_var_scale: float = 1.0
+    noise_var_scale: float = 1.0
+
+
+def task_problem(task: Task, model: Model, model_params: Any = None, *, policy: Policy | None = None,
+                 horizon: int | None = None, model_var_scale: float = 1.0,
+                 noise_var_scale: float = 1.0) -> Problem:
+    """The problem of ``task`` under ``model``: its cost, policy features, initial distribution
+    (mapped to the modelled state), default policy and horizon unless given."""
+    return Problem(
+        model=model,
+        model_params=model_params,
+        policy=task.default_policy() if policy is None else policy,
+        cost=task.cost,
+        features=task.policy_features,
+        initial_state=lambda key: task.to_model_state(task.sample_initial(key)),
+        horizon=task.horizon if horizon is None else horizon,
+        model_var_scale=model_var_scale,
+        noise_var_scale=noise_var_scale,
+    )
+
+
+class Estimate(NamedTuple):
+    """value: the Monte Carlo estimate of J; grad: dJ/dtheta (pytree like theta);
+    grad_var: per-parameter variance of ``grad`` (per-particle variance / P, like theta);
+    aux: diagnostics (arrays; e.g. ``k_lr`` (T,), ``ess`` (T,), ``nan_count``)."""
+
+    value: jax.Array
+    grad: Any
+    grad_var: Any
+    aux: dict
+
+
+class Zeta(NamedTuple):
+    """Distribution parameters of a particle's next state: mean and std, each (S,)."""
+
+    mean: jax.Array
+    std: jax.Array
+
+
+def next_state_distribution(problem: Problem, theta, s: jax.Array) -> Zeta:
+    """``zeta_{t+1}(s_t; theta)`` for ONE particle: the policy acts on ``features(s_t)``,
+    the model predicts, the variances are scaled and summed."""
+    u = problem.policy.apply(theta, problem.features(s))
+    pred = problem.model.predict(problem.model_params, s, u)
+    var = problem.model_var_scale * pred.model_var + problem.noise_var_scale * pred.noise_var
+    return Zeta(pred.mean, jnp.sqrt(var))
+
+
+class Trajectory(NamedTuple):
+    """A particle rollout: states (T+1, P, S) s_0..s_T; zetas: Zeta of (T, P, S) for
+    s_1..s_T; costs (T, P) c(s_1)..c(s_T)."""
+
+    states: jax.Array
+    zetas: Zeta
+    costs: jax.Array
+
+    @property
+    def returns(self) -> jax.Array:
+        """Each particle's return ``sum_t c(s_t)``, (P,)."""
+        return self.costs.sum(axis=0)
+
+    @property
+    def cost_to_go(self) -> jax.Array:
+        """``G[t, i] = sum_{tau >= t} costs[tau, i]``: cost-to-go from s_{t+1}, (T, P)."""
+        return jnp.cumsum(self.costs[::-1], axis=0)[::-1]
+
+
+def draw_noise(problem: Problem, key: jax.Array, num_particles: int, dtype):
+    """Initial particles s0 (P, S) and the standard-normal noise eps (T, P, S) of a rollout."""
+    k_init, k_eps = jax.random.split(key)
+    s0 = jax.vmap(problem.initial_state)(jax.random.split(k_init, num_particles)).astype(dtype)
+    eps = jax.random.normal(k_eps, (problem.horizon,) + s0.shape, dtype)
+    return s0, eps
+
+
+def rollout(problem: Problem, thetas, s0: jax.Array, eps: jax.Array, *, detach_samples: bool = False,
+            resample: Callable[[jax.Array, jax.Array], jax.Array] | None = None,
+            resample_noise: jax.Array | None = None) -> Trajectory:
+    """Roll P particles forward with per-particle parameter copies ``thetas`` (leaves (P, ...)).
+
+    Giving each particle its own copy of theta makes ``d(objective)/d(thetas)[i]`` particle
+    i's contribution to the gradient, from which the gradient's variance is estimated.
+    ``detach_samples`` holds each sample fixed (no gradient through the sampling: the
+    likelihood-ratio estimators). ``resample(s_tilde (P, S), xi (P, S)) -> (P, S)`` replaces
+    the sampled particles after each step (Gaussian resampling), with noise ``resample_noise``
+    (T, P, S).
+    """
+
+    def one_step(s, inputs):
+        eps_t, xi_t = inputs
+        zeta = jax.vmap(functools.partial(next_state_distribution, problem))(thetas, s)
+        s_next = zeta.mean + zeta.std * eps_t
+        if detach_samples:
+            s_next = jax.lax.stop_gradient(s_next)
+        if resample is not None:
+            s_next = resample(s_next, xi_t)
+        return s_next, (s_next, zeta, jax.vmap(problem.cost)(s_next))
+
+    xi = eps if resample_noise is None else resample_noise
+    _, (states, zetas, costs) = jax.lax.scan(one_step, s0, (eps, xi))
+    return Trajectory(jnp.concatenate([s0[None], states]), zetas, costs)
+
+
+def per_particle(theta, num_particles: int):
+    """A copy of theta per particle: every leaf broadcast to (P, ...)."""
+    return jax.tree.map(lambda x: jnp.broadcast_to(x, (num_particles,) + jnp.shape(x)), theta)
+
+
+def summarise(per_particle_grads) -> tuple[Any, Any, jax.Array]:
+    """From per-particle gradient estimates g_i (leaves (P, ...)): the mean gradient, the
+    variance of that mean ``var_i(g_i) / P`` (ddof 1), and the count of non-finite entries."""
+    num = jax.tree.leaves(per_particle_grads)[0].shape[0]
+    grad = jax.tree.map(lambda g: g.mean(axis=0), per_particle_grads)
+    grad_var = jax.tree.map(lambda g: g.var(axis=0, ddof=1) / num, per_particle_grads)
+    nan_count = sum(jnp.sum(~jnp.isfinite(g)) for g in jax.tree.leaves(per_particle_grads))
+    return grad, grad_var, nan_count
+
+
+def objective_gradient(objective: Callable[[Any], tuple[jax.Array, Any]], theta, num_particles: int):
+    """Differentiate a particle objective ``objective(thetas) -> (mean over particles, aux)``
+    with respect to per-particle copies of theta; returns (value, grad, grad_var, nan_count,
+    aux). Particle i's estimate is ``P * d objective / d thetas[i]``."""
+    thetas = per_particle(theta, num_particles)
+    (value, aux), grads = jax.value_and_grad(objective, has_aux=True)(thetas)
+    per_particle_grads = jax.tree.map(lambda g: num_particles * g, grads)
+    grad, grad_var, nan_count = summarise(per_particle_grads)
+    return value, grad, grad_var, nan_count, aux
+
+
+def theta_dtype(theta):
+    """The floating dtype of the policy parameters (the rollout runs in it)."""
+    return jax.tree.leaves(theta)[0].dtype
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedNoise:
+    """PEGASUS: ``inner`` with its noise fixed by ``noise_seed`` for the whole optimisation,
+    whatever key it is called with. The objective becomes deterministic and the gradient
+    exact for it."""
+
+    inner: Any
+    noise_seed: int = 0
+
+    def __call__(self, problem: Problem, theta, key: jax.Array, num_particles: int) -> Estimate:
+        del key  # the point of the estimator: the same noise at every call
+        return self.inner(problem, theta, jax.random.key(self.noise_seed), num_particles)

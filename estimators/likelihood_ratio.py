@@ -1,0 +1,125 @@
+"""LR and BIW-LR: likelihood-ratio gradients (PIPPS, section "Particle Model-Based Policy
+Search", and its batch importance weighting).
+
+Both are written as one score estimator with a weight matrix W (P, P) per step:
+
+    dJ/dtheta = (1/P) sum_t sum_i sum_j W_ij d/dtheta log p(s_{j,t+1} | zeta_{i,t+1})
+
+where ``zeta_{i,t+1}`` depends on theta through the policy at the fixed sample ``s_{i,t}``
+(the samples themselves carry no gradient). With G the cost-to-go from t+1:
+
+- LR: ``W = diag(G_i - b_i)``, ``b_i`` the mean of the other particles' G (leave-one-out);
+- BIW-LR: ``W_ij = c_ij (G_j - b_i)``, ``c_ij = p(s_j | zeta_i) / sum_k p(s_j | zeta_k)``
+  (each sample weighted against the particles' mixture), and the normalised importance-
+  sampled leave-one-out baseline ``b_i = sum_{j != i} c_ij G_j / sum_{j != i} c_ij``.
+  O(P^2 S) per step, in log space.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from estimators.base import Estimate, Problem, Zeta, draw_noise, objective_gradient, rollout, theta_dtype
+
+
+class ScoreStatistics(NamedTuple):
+    """Sufficient statistics of ``sum_j W_ij log N(s_j; m, sd)`` around ``centre`` = the
+    value of m_i: ``A_i = sum_j W_ij (s_j - centre_i)^2``, ``B_i = sum_j W_ij (s_j - centre_i)``
+    (P, S) and ``w_i = sum_j W_ij`` (P,). No gradient flows through them."""
+
+    centre: jax.Array
+    A: jax.Array
+    B: jax.Array
+    w: jax.Array
+
+
+def log_density_matrix(zeta: Zeta, s: jax.Array) -> jax.Array:
+    """``log p(s_j | zeta_i)`` for all pairs, (P, P) [i, j], for diagonal Gaussians."""
+    z = (s[None, :, :] - zeta.mean[:, None, :]) / zeta.std[:, None, :]
+    return jnp.sum(-0.5 * z**2 - jnp.log(zeta.std[:, None, :]), axis=-1) - 0.5 * s.shape[-1] * jnp.log(2 * jnp.pi)
+
+
+def leave_one_out_baseline(G: jax.Array) -> jax.Array:
+    """``b_i = mean_{j != i} G_j``, (P,) -> (P,)."""
+    return (G.sum() - G) / (G.shape[0] - 1)
+
+
+def lr_statistics(zeta: Zeta, s: jax.Array, G: jax.Array, baseline: bool = True) -> tuple[ScoreStatistics, jax.Array]:
+    """Statistics for ``W = diag(G - b)`` (b = 0 without ``baseline``); returns them and the
+    effective sample size P."""
+    weight = G - leave_one_out_baseline(G) if baseline else G
+    r = s - zeta.mean
+    return ScoreStatistics(zeta.mean, weight[:, None] * r**2, weight[:, None] * r, weight), jnp.asarray(
+        G.shape[0], G.dtype)
+
+
+def biw_statistics(zeta: Zeta, s: jax.Array, G: jax.Array, baseline: bool = True) -> tuple[ScoreStatistics, jax.Array]:
+    """Statistics for the batch-importance-weighted W (b = 0 without ``baseline``); returns
+    them and the mean over i of the effective sample size ``(sum_j c_ij)^2 / sum_j c_ij^2`` of
+    particle i's weights."""
+    log_p = log_density_matrix(zeta, s)
+    c = jnp.exp(log_p - jax.scipy.special.logsumexp(log_p, axis=0, keepdims=True))  # normalise over i
+    W = c * G[None, :]
+    if baseline:
+        off_diagonal = c * (1.0 - jnp.eye(c.shape[0], dtype=c.dtype))
+        W = W - c * ((off_diagonal @ G) / off_diagonal.sum(axis=1))[:, None]
+    r = s[None, :, :] - zeta.mean[:, None, :]
+    stats = ScoreStatistics(zeta.mean, jnp.einsum("ij,ijd->id", W, r**2), jnp.einsum("ij,ijd->id", W, r),
+                            W.sum(axis=1))
+    ess = jnp.mean(c.sum(axis=1) ** 2 / jnp.sum(c**2, axis=1))
+    return stats, ess
+
+
+def score_surrogate(zeta: Zeta, stats: ScoreStatistics) -> jax.Array:
+    """``sum_j W_ij log N(s_j; m_i, sd_i)`` per particle, (P,), up to a constant, written so
+    that its gradient with respect to zeta is exact and free of cancellation:
+    with ``delta = m - centre`` (zero, but carrying the gradient),
+    ``-sum_d (A - 2 delta B + w delta^2) / (2 sd^2) - w sum_d log sd``."""
+    delta = zeta.mean - stats.centre
+    w = stats.w[:, None]
+    quad = (stats.A - 2 * delta * stats.B + w * delta**2) / (2 * zeta.std**2)
+    return -jnp.sum(quad + w * jnp.log(zeta.std), axis=-1)
+
+
+STATISTICS = {"lr": lr_statistics, "biw_lr": biw_statistics}
+
+
+@dataclasses.dataclass(frozen=True)
+class LikelihoodRatio:
+    """LR (``weighting="lr"``) or BIW-LR (``weighting="biw_lr"``) estimator;
+    ``__call__(problem, theta, key, P) -> Estimate``; aux: ``ess`` (T,), ``nan_count``.
+
+    ``baseline=False`` drops the baseline: BIW-LR is then unbiased (the samples are a
+    stratified draw from the mixture), while the paper's data-dependent baseline adds a bias
+    that shrinks with P (measured in tests/test_estimators.py).
+    """
+
+    weighting: str = "lr"
+    baseline: bool = True
+
+    def __post_init__(self):
+        if self.weighting not in STATISTICS:
+            raise ValueError(f"unknown weighting {self.weighting!r}; valid: {sorted(STATISTICS)}")
+
+    def step_statistics(self, zetas: Zeta, states: jax.Array, G: jax.Array):
+        """Per-step statistics over the whole trajectory, one step at a time (lax.map keeps
+        the (P, P, S) work of BIW transient). zetas (T, P, S), states (T, P, S), G (T, P)."""
+        statistics = STATISTICS[self.weighting]
+        return jax.lax.map(lambda args: statistics(*args, baseline=self.baseline), (zetas, states, G))
+
+    def __call__(self, problem: Problem, theta, key: jax.Array, num_particles: int) -> Estimate:
+        s0, eps = draw_noise(problem, key, num_particles, theta_dtype(theta))
+
+        def objective(thetas):
+            traj = rollout(problem, thetas, s0, eps, detach_samples=True)
+            fixed = jax.lax.stop_gradient(traj)
+            stats, ess = self.step_statistics(fixed.zetas, fixed.states[1:], fixed.cost_to_go)
+            surrogate = jax.vmap(score_surrogate)(traj.zetas, stats)  # (T, P)
+            return surrogate.sum(axis=0).mean(), (fixed.returns.mean(), ess)
+
+        _, grad, grad_var, nan_count, (value, ess) = objective_gradient(objective, theta, num_particles)
+        return Estimate(value, grad, grad_var, {"ess": ess, "nan_count": nan_count})

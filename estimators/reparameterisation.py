@@ -1,0 +1,51 @@
+"""RP and GR: reparameterisation gradients (PIPPS, section "Particle Model-Based Policy Search").
+
+RP: ``dJ/dtheta = (1/P) sum_i d/dtheta sum_t c(s_{i,t})`` through ``s_{t+1} = m + sd * eps``
+by the chain rule (autodiff through the whole rollout).
+
+GR (Gaussian resampling): after each step the sampled particles ``s~_{t+1}`` are replaced by
+``mu + L xi_i`` with ``mu`` and ``L L^T`` the particles' mean and covariance (ddof 1) and
+``xi_i ~ N(0, I)``; the gradient goes through the sampling, the fit and the Cholesky factor.
+GR's particles are coupled, so the per-particle contributions behind its ``grad_var`` are
+each particle's use of theta, not independent estimates.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from estimators.base import Estimate, Problem, draw_noise, objective_gradient, rollout, theta_dtype
+
+
+def gaussian_resample(s_tilde: jax.Array, xi: jax.Array) -> jax.Array:
+    """``mu + xi L^T`` with mu (S,) and L (S, S) the Cholesky factor of the particles'
+    covariance; s_tilde, xi: (P, S) -> (P, S). A singular covariance gives NaN (counted)."""
+    mu = s_tilde.mean(axis=0)
+    centred = s_tilde - mu
+    cov = centred.T @ centred / (s_tilde.shape[0] - 1)
+    return mu + xi @ jnp.linalg.cholesky(cov).T
+
+
+@dataclasses.dataclass(frozen=True)
+class Reparameterisation:
+    """RP (``gaussian_resampling=False``) or GR; ``__call__(problem, theta, key, P) -> Estimate``;
+    aux: ``nan_count``."""
+
+    gaussian_resampling: bool = False
+
+    def __call__(self, problem: Problem, theta, key: jax.Array, num_particles: int) -> Estimate:
+        s0, eps = draw_noise(problem, key, num_particles, theta_dtype(theta))
+        resample, xi = None, None
+        if self.gaussian_resampling:
+            resample = gaussian_resample
+            xi = jax.random.normal(jax.random.fold_in(key, 1), eps.shape, eps.dtype)
+
+        def objective(thetas):
+            traj = rollout(problem, thetas, s0, eps, resample=resample, resample_noise=xi)
+            return traj.returns.mean(), None
+
+        value, grad, grad_var, nan_count, _ = objective_gradient(objective, theta, num_particles)
+        return Estimate(value, grad, grad_var, {"nan_count": nan_count})
