@@ -85,10 +85,11 @@ class Zeta(NamedTuple):
     std: jax.Array
 
 
-def next_state_distribution(problem: Problem, theta, s: jax.Array) -> Zeta:
-    """``zeta_{t+1}(s_t; theta)`` for ONE particle: the policy acts on ``features(s_t)``,
-    the model predicts, the variances are scaled and summed."""
-    u = problem.policy.apply(theta, problem.features(s))
+def next_state_distribution(problem: Problem, net, s: jax.Array) -> Zeta:
+    """``zeta_{t+1}(s_t; theta)`` for ONE particle, from the policy's prepared parameters
+    ``net = policy.prepare(theta)``: the policy acts on ``features(s_t)``, the model
+    predicts, the variances are scaled and summed."""
+    u = problem.policy.network(net, problem.features(s))
     pred = problem.model.predict(problem.model_params, s, u)
     var = problem.model_var_scale * pred.model_var + problem.noise_var_scale * pred.noise_var
     return Zeta(pred.mean, jnp.sqrt(var))
@@ -121,13 +122,14 @@ def draw_noise(problem: Problem, key: jax.Array, num_particles: int, dtype):
     return s0, eps
 
 
-def rollout(problem: Problem, thetas, s0: jax.Array, eps: jax.Array, *, detach_samples: bool = False,
+def rollout(problem: Problem, nets, s0: jax.Array, eps: jax.Array, *, detach_samples: bool = False,
             resample: Callable[[jax.Array, jax.Array], jax.Array] | None = None,
             resample_noise: jax.Array | None = None) -> Trajectory:
-    """Roll P particles forward with per-particle parameter copies ``thetas`` (leaves (P, ...)).
+    """Roll P particles forward with per-particle copies ``nets`` (leaves (P, ...)) of the
+    policy's prepared parameters.
 
-    Giving each particle its own copy of theta makes ``d(objective)/d(thetas)[i]`` particle
-    i's contribution to the gradient, from which the gradient's variance is estimated.
+    Giving each particle its own copy makes ``d(objective)/d(nets)[i]`` particle i's
+    contribution to the gradient, from which the gradient's variance is estimated.
     ``detach_samples`` holds each sample fixed (no gradient through the sampling: the
     likelihood-ratio estimators). ``resample(s_tilde (P, S), xi (P, S)) -> (P, S)`` replaces
     the sampled particles after each step (Gaussian resampling), with noise ``resample_noise``
@@ -136,7 +138,7 @@ def rollout(problem: Problem, thetas, s0: jax.Array, eps: jax.Array, *, detach_s
 
     def one_step(s, inputs):
         eps_t, xi_t = inputs
-        zeta = jax.vmap(functools.partial(next_state_distribution, problem))(thetas, s)
+        zeta = jax.vmap(functools.partial(next_state_distribution, problem))(nets, s)
         s_next = zeta.mean + zeta.std * eps_t
         if detach_samples:
             s_next = jax.lax.stop_gradient(s_next)
@@ -164,13 +166,30 @@ def summarise(per_particle_grads) -> tuple[Any, Any, jax.Array]:
     return grad, grad_var, nan_count
 
 
-def objective_gradient(objective: Callable[[Any], tuple[jax.Array, Any]], theta, num_particles: int):
-    """Differentiate a particle objective ``objective(thetas) -> (mean over particles, aux)``
-    with respect to per-particle copies of theta; returns (value, grad, grad_var, nan_count,
-    aux). Particle i's estimate is ``P * d objective / d thetas[i]``."""
-    thetas = per_particle(theta, num_particles)
-    (value, aux), grads = jax.value_and_grad(objective, has_aux=True)(thetas)
-    per_particle_grads = jax.tree.map(lambda g: num_particles * g, grads)
+def prepared(problem: Problem, theta):
+    """``(net, to_theta)``: the policy's prepared parameters and a function mapping a batch of
+    cotangents for net (leaves (..., *net shape)) to cotangents for theta (one VJP of
+    ``prepare``, vmapped over the batch axes)."""
+    net, prepare_vjp = jax.vjp(problem.policy.prepare, theta)
+
+    def to_theta(net_grads, batch_dims: int = 1):
+        fn = lambda g: prepare_vjp(g)[0]  # noqa: E731
+        for _ in range(batch_dims):
+            fn = jax.vmap(fn)
+        return fn(net_grads)
+
+    return net, to_theta
+
+
+def objective_gradient(objective: Callable[[Any], tuple[jax.Array, Any]], problem: Problem, theta,
+                       num_particles: int):
+    """Differentiate a particle objective ``objective(nets) -> (mean over particles, aux)``
+    with respect to per-particle copies of the prepared policy parameters; returns (value,
+    grad, grad_var, nan_count, aux). Particle i's estimate is ``P * d objective / d nets[i]``
+    mapped to theta."""
+    net, to_theta = prepared(problem, theta)
+    (value, aux), grads = jax.value_and_grad(objective, has_aux=True)(per_particle(net, num_particles))
+    per_particle_grads = to_theta(jax.tree.map(lambda g: num_particles * g, grads))
     grad, grad_var, nan_count = summarise(per_particle_grads)
     return value, grad, grad_var, nan_count, aux
 

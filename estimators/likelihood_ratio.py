@@ -114,12 +114,12 @@ class LikelihoodRatio:
     def __call__(self, problem: Problem, theta, key: jax.Array, num_particles: int) -> Estimate:
         s0, eps = draw_noise(problem, key, num_particles, theta_dtype(theta))
 
-        def objective(thetas):
-            traj = rollout(problem, thetas, s0, eps, detach_samples=True)
+        def objective(nets):
+            traj = rollout(problem, nets, s0, eps, detach_samples=True)
             fixed = jax.lax.stop_gradient(traj)
             stats, ess = self.step_statistics(fixed.zetas, fixed.states[1:], fixed.cost_to_go)
             surrogate = jax.vmap(score_surrogate)(traj.zetas, stats)  # (T, P)
             return surrogate.sum(axis=0).mean(), (fixed.returns.mean(), ess)
 
-        _, grad, grad_var, nan_count, (value, ess) = objective_gradient(objective, theta, num_particles)
+        _, grad, grad_var, nan_count, (value, ess) = objective_gradient(objective, problem, theta, num_particles)
         return Estimate(value, grad, grad_var, {"ess": ess, "nan_count": nan_count})

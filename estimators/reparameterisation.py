@@ -43,9 +43,9 @@ class Reparameterisation:
             resample = gaussian_resample
             xi = jax.random.normal(jax.random.fold_in(key, 1), eps.shape, eps.dtype)
 
-        def objective(thetas):
-            traj = rollout(problem, thetas, s0, eps, resample=resample, resample_noise=xi)
+        def objective(nets):
+            traj = rollout(problem, nets, s0, eps, resample=resample, resample_noise=xi)
             return traj.returns.mean(), None
 
-        value, grad, grad_var, nan_count, _ = objective_gradient(objective, theta, num_particles)
+        value, grad, grad_var, nan_count, _ = objective_gradient(objective, problem, theta, num_particles)
         return Estimate(value, grad, grad_var, {"nan_count": nan_count})

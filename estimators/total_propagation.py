@@ -23,7 +23,8 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from estimators.base import Estimate, Problem, Trajectory, Zeta, draw_noise, next_state_distribution, summarise, theta_dtype
+from estimators.base import (Estimate, Problem, Trajectory, Zeta, draw_noise, next_state_distribution, prepared,
+                             summarise, theta_dtype)
 from estimators.likelihood_ratio import LikelihoodRatio, score_surrogate
 
 
@@ -53,9 +54,10 @@ class TotalPropagation:
     def __call__(self, problem: Problem, theta, key: jax.Array, num_particles: int) -> Estimate:
         s0, eps = draw_noise(problem, key, num_particles, theta_dtype(theta))
         zeta_fn = functools.partial(next_state_distribution, problem)
+        net, to_theta = prepared(problem, theta)
 
-        def linearise(s):  # one particle: zeta and its VJP in (theta, s)
-            return jax.vjp(zeta_fn, theta, s)
+        def linearise(s):  # one particle: zeta and its VJP in (net, s)
+            return jax.vjp(zeta_fn, net, s)
 
         def forward(s, eps_t):
             zeta, vjp = jax.vmap(linearise)(s)
@@ -74,7 +76,8 @@ class TotalPropagation:
             rp = Zeta(dG_ds, dG_ds * eps_t)
             lr = jax.grad(lambda z: score_surrogate(z, stats_t).sum())(zeta_t)
             both = jax.tree.map(lambda a, b: jnp.stack([a, b], axis=1), rp, lr)  # (P, 2, S)
-            theta_ct, s_ct = jax.vmap(lambda f, ct: jax.vmap(f)(ct))(vjp_t, both)  # leaves (P, 2, ...)
+            net_ct, s_ct = jax.vmap(lambda f, ct: jax.vmap(f)(ct))(vjp_t, both)  # leaves (P, 2, ...)
+            theta_ct = to_theta(net_ct, batch_dims=2)
             rp_theta = jax.tree.map(lambda g: g[:, 0], theta_ct)
             lr_theta = jax.tree.map(lambda g: g[:, 1], theta_ct)
             if self.fixed_k is None:

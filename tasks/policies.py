@@ -1,4 +1,8 @@
-"""Policies: a pair of pure functions ``init(key) -> theta`` and ``apply(theta, f) -> u``.
+"""Policies: pure functions ``init(key) -> theta`` and ``apply(theta, f) -> u``.
+
+``apply(theta, f) = network(prepare(theta), f)``: ``prepare`` does the work that depends on
+theta alone (the RBF network's weight solve), so that estimators evaluating many particles,
+each with its own copy of the parameters, do it once rather than per particle and step.
 
 Both policies squash a pre-activation ``a`` with PILCO's sine saturation
 ``sat(a) = (9 sin(a) + sin(3 a)) / 8`` (range [-1, 1]) and scale by the control limit:
@@ -18,11 +22,23 @@ RBF_NOISE_STD = 0.01
 """Noise std of the RBF policy's GP-mean parameterisation (fixed, as in PILCO)."""
 
 
+def _identity(theta):
+    return theta
+
+
 class Policy(NamedTuple):
-    """``init(key) -> theta`` (a pytree); ``apply(theta, features (F,)) -> u (U,)``."""
+    """``init(key) -> theta`` (a pytree); ``network(prepare(theta), features (F,)) -> u (U,)``.
+
+    ``prepare`` maps theta to the network's parameters (default: identity).
+    """
 
     init: Callable[[jax.Array], object]
-    apply: Callable[[object, jax.Array], jax.Array]
+    network: Callable[[object, jax.Array], jax.Array]
+    prepare: Callable[[object], object] = _identity
+
+    def apply(self, theta, f: jax.Array) -> jax.Array:
+        """``u = network(prepare(theta), f)`` for one feature vector f (F,) -> (U,)."""
+        return self.network(self.prepare(theta), f)
 
 
 class RBFParams(NamedTuple):
@@ -67,15 +83,27 @@ def rbf_weights(theta: RBFParams) -> jax.Array:
     return jax.vmap(one_output, in_axes=(0, 1))(theta.log_lengthscales, theta.targets)
 
 
-def rbf_preactivation(theta: RBFParams, f: jax.Array) -> jax.Array:
+class RBFNetwork(NamedTuple):
+    """The RBF network's parameters: centres (B, F), weights beta (U, B), log_lengthscales (U, F)."""
+
+    centres: jax.Array
+    weights: jax.Array
+    log_lengthscales: jax.Array
+
+
+def rbf_network(theta: RBFParams) -> RBFNetwork:
+    """theta (pseudo-data) -> the network's parameters (the weight solve, once per theta)."""
+    return RBFNetwork(theta.centres, rbf_weights(theta), theta.log_lengthscales)
+
+
+def rbf_preactivation(net: RBFNetwork, f: jax.Array) -> jax.Array:
     """``pi~(f) = sum_i beta_i exp(-1/2 (f - c_i)^T Lambda^-1 (f - c_i))``, (U,)."""
-    beta = rbf_weights(theta)
 
     def one_output(log_ell, beta_u):
-        diff = (f - theta.centres) / jnp.exp(log_ell)
+        diff = (f - net.centres) / jnp.exp(log_ell)
         return RBF_SIGNAL_STD**2 * jnp.exp(-0.5 * jnp.sum(diff**2, axis=-1)) @ beta_u
 
-    return jax.vmap(one_output)(theta.log_lengthscales, beta)
+    return jax.vmap(one_output)(net.log_lengthscales, net.weights)
 
 
 def rbf_policy(
@@ -100,10 +128,10 @@ def rbf_policy(
         log_ell = jnp.log(jnp.asarray(init_lengthscales, centres.dtype))
         return RBFParams(centres, targets, jnp.tile(log_ell, (num_controls, 1)))
 
-    def apply(theta, f):
-        return u_max_arr.astype(f.dtype) * saturate(rbf_preactivation(theta, f))
+    def network(net, f):
+        return u_max_arr.astype(f.dtype) * saturate(rbf_preactivation(net, f))
 
-    return Policy(init, apply)
+    return Policy(init, network, rbf_network)
 
 
 def linear_policy(feature_dim: int, u_max: tuple[float, ...], init_scale: float = 1e-2) -> Policy:
@@ -115,7 +143,7 @@ def linear_policy(feature_dim: int, u_max: tuple[float, ...], init_scale: float 
         weight = init_scale * jax.random.normal(key, (num_controls, feature_dim))
         return LinearParams(weight, jnp.zeros((num_controls,), weight.dtype))
 
-    def apply(theta, f):
+    def network(theta, f):
         return u_max_arr.astype(f.dtype) * saturate(theta.weight @ f + theta.bias)
 
-    return Policy(init, apply)
+    return Policy(init, network)

@@ -1,0 +1,106 @@
+"""The scenario the gradient experiments start from, built reproducibly and cached.
+
+From a seed: the task's random trial(s), then ``learned_trials`` trials of the paper's loop
+(fit the GP to all data, optimise the policy on it with ``estimator`` for
+``optimiser_steps`` steps of the paper's optimiser, run the policy once on the real system,
+add the data); finally the GP is refitted to all data. The result is theta0 (the policy after
+the last trial) and the GP posterior. The cache file's name is a hash of the settings.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import pickle
+import sys
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+import estimators
+import tasks
+from estimators.base import task_problem
+from harness.episodic import add_episode, data_capacity, optimise_policy
+from models import gp
+from tasks.rollout import run_episode
+
+
+@dataclasses.dataclass(frozen=True)
+class ScenarioArgs:
+    """How the scenario is built (recorded in every report that uses it)."""
+
+    task: str = "cartpole"
+    seed: int = 0
+    learned_trials: int = 2
+    estimator: str = "tp"
+    particles: int = 100
+    optimiser_steps: int = 200
+    gp_steps: int = 100
+
+    def describe(self) -> str:
+        return (f"task {self.task}, seed {self.seed}: the preset's random trial(s), then "
+                f"{self.learned_trials} learned trial(s), each optimising the policy on the GP "
+                f"with {self.estimator} ({self.particles} particles, {self.optimiser_steps} steps of "
+                f"the paper's optimiser); GP refitted to all data ({self.gp_steps} L-BFGS steps)")
+
+
+class Scenario(NamedTuple):
+    """data: the GP's training buffer; posterior: the GP fitted to it; theta: theta0 (the
+    policy after the last learned trial); returns: (trials,) real-system return per trial."""
+
+    data: gp.GPData
+    posterior: gp.GPPosterior
+    theta: Any
+    returns: np.ndarray
+
+
+def build(args: ScenarioArgs) -> Scenario:
+    """Run the scenario's trials (progress on stderr)."""
+    task = tasks.make(args.task)
+    key = jax.random.key(args.seed)
+    policy = task.default_policy()
+    model = gp.GPModel(task)
+    problem = task_problem(task, model, policy=policy)
+    data = model.empty_data(data_capacity(task, task.num_random_trials + args.learned_trials))
+    returns = []
+    for trial in range(task.num_random_trials):
+        episode = run_episode(task, jax.random.fold_in(key, trial))
+        data = add_episode(task, data, episode)
+        returns.append(float(episode.total_cost))
+    theta = policy.init(jax.random.fold_in(key, 10_000))
+    estimator = estimators.make(args.estimator)
+    for trial in range(args.learned_trials):
+        print(f"scenario: learned trial {trial + 1}/{args.learned_trials} "
+              f"({int(data.num_valid)} training points)", file=sys.stderr, flush=True)
+        posterior = gp.fit(data, num_steps=args.gp_steps)
+        problem = dataclasses.replace(problem, model_params=posterior)
+        theta, _ = optimise_policy(problem, theta, jax.random.fold_in(key, 20_000 + trial), estimator=estimator,
+                                   num_steps=args.optimiser_steps, num_particles=args.particles)
+        episode = run_episode(task, jax.random.fold_in(key, 30_000 + trial), policy, theta)
+        data = add_episode(task, data, episode)
+        returns.append(float(episode.total_cost))
+    posterior = gp.fit(data, num_steps=args.gp_steps)
+    return Scenario(data, posterior, theta, np.asarray(returns))
+
+
+def cache_path(args: ScenarioArgs, cache_dir: str) -> str:
+    settings = json.dumps({**dataclasses.asdict(args), "x64": jax.config.jax_enable_x64}, sort_keys=True)
+    digest = hashlib.sha256(settings.encode()).hexdigest()[:12]
+    return os.path.join(cache_dir, f"scenario_{args.task}_{digest}.pkl")
+
+
+def load_or_build(args: ScenarioArgs, cache_dir: str) -> Scenario:
+    """The cached scenario for ``args`` if there is one, else build and cache it."""
+    path = cache_path(args, cache_dir)
+    if os.path.exists(path):
+        with open(path, "rb") as f:
+            return jax.tree.map(jax.numpy.asarray, pickle.load(f))
+    scenario = build(args)
+    os.makedirs(cache_dir, exist_ok=True)
+    with open(path + ".tmp", "wb") as f:
+        pickle.dump(jax.tree.map(np.asarray, scenario), f)
+    os.replace(path + ".tmp", path)
+    return scenario
