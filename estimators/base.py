@@ -15,6 +15,7 @@ import functools
 from typing import Any, Callable, NamedTuple
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 
 from models.prediction import Model
@@ -167,18 +168,31 @@ def summarise(per_particle_grads) -> tuple[Any, Any, jax.Array]:
 
 
 def prepared(problem: Problem, theta):
-    """``(net, to_theta)``: the policy's prepared parameters and a function mapping a batch of
-    cotangents for net (leaves (..., *net shape)) to cotangents for theta (one VJP of
-    ``prepare``, vmapped over the batch axes)."""
-    net, prepare_vjp = jax.vjp(problem.policy.prepare, theta)
+    """``(net, to_theta)``: the policy's prepared parameters and the linear map taking a batch
+    of cotangents for net (leaves (*batch, *net shape)) to cotangents for theta.
+
+    The map is the transposed Jacobian of ``prepare``, materialised once per estimate (forward
+    mode) as a (net size, theta size) matrix, so that mapping many per-particle cotangents is
+    one matmul rather than a batch of solves through the RBF weights (the cart-pole's RBF
+    network: 305 x 305).
+    """
+    flat_theta, unravel_theta = jax.flatten_util.ravel_pytree(theta)
+
+    def flat_prepare(x):
+        return jax.flatten_util.ravel_pytree(problem.policy.prepare(unravel_theta(x)))[0]
+
+    jacobian = jax.jacfwd(flat_prepare)(flat_theta)  # (net size, theta size)
 
     def to_theta(net_grads, batch_dims: int = 1):
-        fn = lambda g: prepare_vjp(g)[0]  # noqa: E731
+        leaves = jax.tree.leaves(net_grads)  # the order ravel_pytree uses
+        batch = leaves[0].shape[:batch_dims]
+        flat = jnp.concatenate([g.reshape(batch + (-1,)) for g in leaves], axis=-1)
+        unravel = unravel_theta
         for _ in range(batch_dims):
-            fn = jax.vmap(fn)
-        return fn(net_grads)
+            unravel = jax.vmap(unravel)
+        return unravel(flat @ jacobian)
 
-    return net, to_theta
+    return problem.policy.prepare(theta), to_theta
 
 
 def objective_gradient(objective: Callable[[Any], tuple[jax.Array, Any]], problem: Problem, theta,

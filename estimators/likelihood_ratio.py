@@ -62,11 +62,14 @@ def biw_statistics(zeta: Zeta, s: jax.Array, G: jax.Array, baseline: bool = True
     them and the mean over i of the effective sample size ``(sum_j c_ij)^2 / sum_j c_ij^2`` of
     particle i's weights."""
     log_p = log_density_matrix(zeta, s)
-    c = jnp.exp(log_p - jax.scipy.special.logsumexp(log_p, axis=0, keepdims=True))  # normalise over i
+    log_c = log_p - jax.scipy.special.logsumexp(log_p, axis=0, keepdims=True)  # normalise over i
+    c = jnp.exp(log_c)
     W = c * G[None, :]
     if baseline:
-        off_diagonal = c * (1.0 - jnp.eye(c.shape[0], dtype=c.dtype))
-        W = W - c * ((off_diagonal @ G) / off_diagonal.sum(axis=1))[:, None]
+        # b_i = sum_{j != i} c_ij G_j / sum_{j != i} c_ij as a softmax of log c_ij over j != i:
+        # finite even when every c_ij (j != i) underflows (particles far apart).
+        off_diagonal = jnp.where(jnp.eye(c.shape[0], dtype=bool), -jnp.inf, log_c)
+        W = W - c * (jax.nn.softmax(off_diagonal, axis=1) @ G)[:, None]
     r = s[None, :, :] - zeta.mean[:, None, :]
     stats = ScoreStatistics(zeta.mean, jnp.einsum("ij,ijd->id", W, r**2), jnp.einsum("ij,ijd->id", W, r),
                             W.sum(axis=1))

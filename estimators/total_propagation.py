@@ -1,7 +1,7 @@
 """TP: total propagation (PIPPS, Algorithm "Total Propagation").
 
-One forward pass samples the particles and keeps, per step and particle, the VJP of
-``zeta_{t+1}(s_t, theta)``. One backward pass over t = T..1 then, per particle i:
+One forward pass samples the particles. One backward pass over t = T..1 then, per particle i
+(re-linearising ``zeta_t(s_{t-1}, theta)`` at the stored samples):
 
     dG^RP/ds_t   = dc/ds_t + (mixed cotangent from step t+1 mapped through zeta_{t+1})
     g^RP_zeta    = (dG^RP/ds_t, dG^RP/ds_t * eps_t)          # s_t = m + sd * eps
@@ -56,27 +56,30 @@ class TotalPropagation:
         zeta_fn = functools.partial(next_state_distribution, problem)
         net, to_theta = prepared(problem, theta)
 
-        def linearise(s):  # one particle: zeta and its VJP in (net, s)
-            return jax.vjp(zeta_fn, net, s)
-
         def forward(s, eps_t):
-            zeta, vjp = jax.vmap(linearise)(s)
+            zeta = jax.vmap(zeta_fn, in_axes=(None, 0))(net, s)
             s_next = zeta.mean + zeta.std * eps_t
-            return s_next, (s_next, zeta, vjp)
+            return s_next, (s_next, zeta)
 
-        _, (states, zetas, vjps) = jax.lax.scan(forward, s0, eps)
+        _, (states, zetas) = jax.lax.scan(forward, s0, eps)
         traj = Trajectory(jnp.concatenate([s0[None], states]), zetas, jax.vmap(jax.vmap(problem.cost))(states))
         stats, ess = LikelihoodRatio(self.weighting).step_statistics(zetas, states, traj.cost_to_go)
         cost_grad = jax.vmap(jax.grad(problem.cost))
 
         def backward(carry, inputs):
             future_s, accumulated = carry
-            s_t, eps_t, zeta_t, stats_t, vjp_t = inputs
+            s_prev, s_t, eps_t, zeta_t, stats_t = inputs
             dG_ds = cost_grad(s_t) + future_s
             rp = Zeta(dG_ds, dG_ds * eps_t)
             lr = jax.grad(lambda z: score_surrogate(z, stats_t).sum())(zeta_t)
             both = jax.tree.map(lambda a, b: jnp.stack([a, b], axis=1), rp, lr)  # (P, 2, S)
-            net_ct, s_ct = jax.vmap(lambda f, ct: jax.vmap(f)(ct))(vjp_t, both)  # leaves (P, 2, ...)
+            # Re-linearise zeta_t(s_{t-1}, net) per particle (cheaper than storing VJP residuals,
+            # which would hold a per-particle copy of the model's matrices at every step).
+            def vjp_two(s_i, ct_i):
+                _, vjp = jax.vjp(zeta_fn, net, s_i)
+                return jax.vmap(vjp)(ct_i)
+
+            net_ct, s_ct = jax.vmap(vjp_two)(s_prev, both)  # leaves (P, 2, ...)
             theta_ct = to_theta(net_ct, batch_dims=2)
             rp_theta = jax.tree.map(lambda g: g[:, 0], theta_ct)
             lr_theta = jax.tree.map(lambda g: g[:, 1], theta_ct)
@@ -90,7 +93,7 @@ class TotalPropagation:
 
         zeros = jax.tree.map(lambda x: jnp.zeros((num_particles,) + jnp.shape(x), x.dtype), theta)
         (_, per_particle_grads), k_lr = jax.lax.scan(
-            backward, (jnp.zeros_like(s0), zeros), (states, eps, zetas, stats, vjps), reverse=True)
+            backward, (jnp.zeros_like(s0), zeros), (traj.states[:-1], states, eps, zetas, stats), reverse=True)
         grad, grad_var, nan_count = summarise(per_particle_grads)
         aux = {"k_lr": k_lr, "ess": ess, "nan_count": nan_count + jnp.sum(~jnp.isfinite(k_lr))}
         return Estimate(traj.returns.mean(), grad, grad_var, aux)

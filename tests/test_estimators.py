@@ -169,3 +169,19 @@ def test_registry_errors():
         estimators.make("reinforce")
     with pytest.raises(ValueError, match="bad option for estimator 'rp_fs'"):
         estimators.make("rp_fs", seed=1)
+
+
+def test_biw_baseline_is_finite_when_particles_do_not_overlap():
+    """Particles 1e3 standard deviations apart: every off-diagonal mixture weight underflows,
+    and the log-space baseline must stay finite. In that limit b_i is the cost-to-go of the
+    nearest other particle(s) (their weight dominates): b = [G_1, (G_0 + G_2) / 2, G_1]."""
+    from estimators.base import Zeta
+    from estimators.likelihood_ratio import biw_statistics
+
+    s = jnp.array([[0.0], [10.0], [20.0]])
+    zeta = Zeta(s, jnp.full((3, 1), 0.01))
+    G = jnp.array([1.0, 2.0, 4.0])
+    stats, ess = biw_statistics(zeta, s, G)
+    assert all(bool(jnp.all(jnp.isfinite(x))) for x in stats)
+    np.testing.assert_allclose(float(ess), 1.0)
+    np.testing.assert_allclose(stats.w, G - jnp.array([2.0, 2.5, 2.0]), rtol=1e-12)
