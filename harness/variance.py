@@ -33,7 +33,7 @@ from models import gp
 from models.simulator import SimulatorModel
 
 MODELS = ("gp", "jax", "mjx")
-KEY_COLUMNS = ["task", "model", "estimator", "particles", "delta_theta", "repeats", "seed"]
+KEY_COLUMNS = ["task", "model", "estimator", "particles", "delta_theta", "repeats", "seed", "scenario"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,6 +50,14 @@ class Args:
     out: str = "reports"
     paper: bool = False
     x64: bool = True
+    scenario_trials: int = 2
+    scenario_steps: int = 200
+    scenario_particles: int = 100
+
+    @property
+    def scenario(self) -> scenario_lib.ScenarioArgs:
+        return scenario_lib.ScenarioArgs(task=self.task, seed=self.seed, learned_trials=self.scenario_trials,
+                                         optimiser_steps=self.scenario_steps, particles=self.scenario_particles)
 
     def __post_init__(self):
         if self.model not in MODELS:
@@ -129,8 +137,7 @@ def run(args: Args) -> pd.DataFrame:
     csv = os.path.join(args.out, f"variance_{args.task}_{args.model}.csv")
     done = pd.read_csv(csv) if os.path.exists(csv) else pd.DataFrame(columns=KEY_COLUMNS)
     done_keys = set(map(tuple, done[KEY_COLUMNS].astype(str).to_numpy()))
-    scn = scenario_lib.load_or_build(scenario_lib.ScenarioArgs(task=args.task, seed=args.seed),
-                                     os.path.join(args.out, ".cache"))
+    scn = scenario_lib.load_or_build(args.scenario, os.path.join(args.out, ".cache"))
     problem = build_problem(args, scn)
     key = jax.random.key(args.seed)
     direction = unit_direction(scn.theta, jax.random.fold_in(key, 1))
@@ -138,7 +145,8 @@ def run(args: Args) -> pd.DataFrame:
              for p in args.particle_counts]
     for index, (delta, name, num_particles) in enumerate(cells):
         row_key = dict(task=args.task, model=args.model, estimator=name, particles=num_particles,
-                       delta_theta=delta, repeats=args.num_repeats, seed=args.seed)
+                       delta_theta=delta, repeats=args.num_repeats, seed=args.seed,
+                       scenario=os.path.basename(scenario_lib.cache_path(args.scenario, "")))
         if tuple(str(v) for v in row_key.values()) in done_keys:
             continue
         theta = jax.tree.map(lambda t, d: t + delta * d, scn.theta, direction)
@@ -150,7 +158,8 @@ def run(args: Args) -> pd.DataFrame:
               f"variance {stats['variance']:.3e}  ({stats['seconds_per_estimate']:.2f} s/estimate, "
               f"compile {stats['compile_seconds']:.1f} s)", file=sys.stderr, flush=True)
     table = pd.read_csv(csv)
-    return table[(table.seed == args.seed) & (table.repeats == args.num_repeats)]
+    scenario_name = os.path.basename(scenario_lib.cache_path(args.scenario, ""))
+    return table[(table.seed == args.seed) & (table.repeats == args.num_repeats) & (table.scenario == scenario_name)]
 
 
 def write_report(args: Args, table: pd.DataFrame, scn_args: scenario_lib.ScenarioArgs) -> None:
@@ -182,7 +191,9 @@ def write_report(args: Args, table: pd.DataFrame, scn_args: scenario_lib.Scenari
         "",
         f"Command: `python -m harness.variance --task {args.task} --model {args.model} "
         f"--estimators {args.estimators} --particles {','.join(map(str, args.particle_counts))} "
-        f"--repeats {args.num_repeats} --delta-theta {args.delta_theta} --seed {args.seed}`",
+        f"--repeats {args.num_repeats} --delta-theta {args.delta_theta} --seed {args.seed} "
+        f"--scenario-trials {args.scenario_trials} --scenario-steps {args.scenario_steps} "
+        f"--scenario-particles {args.scenario_particles}`",
         "",
         f"- Scenario: {scn_args.describe()}.",
         f"- Variance: trace of the covariance of {args.num_repeats} independent gradient estimates "
@@ -190,14 +201,14 @@ def write_report(args: Args, table: pd.DataFrame, scn_args: scenario_lib.Scenari
         "",
         "Variance (rows: delta theta, estimator; columns: particles):",
         "",
-        pivot.to_markdown(floatfmt=".3e"),
+        pivot.reset_index().to_markdown(index=False, floatfmt=".3e"),
         "",
         f"![variance]({os.path.basename(stem)}.png)",
         "",
         "Seconds per estimate (after compilation):",
         "",
         table.pivot_table(index=["delta_theta", "estimator"], columns="particles",
-                          values="seconds_per_estimate").to_markdown(floatfmt=".3f"),
+                          values="seconds_per_estimate").reset_index().to_markdown(index=False, floatfmt=".3f"),
         "",
     ]
     with open(stem + ".md", "w") as f:
@@ -208,7 +219,7 @@ def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
     table = run(args)
-    write_report(args, table, scenario_lib.ScenarioArgs(task=args.task, seed=args.seed))
+    write_report(args, table, args.scenario)
     print(f"wrote {os.path.join(args.out, f'variance_{args.task}_{args.model}')}.{{csv,md,png}}", file=sys.stderr)
 
 
