@@ -1,4 +1,5 @@
-"""The variance experiment end to end at a tiny size, its resume, and its argument checks."""
+"""The experiments end to end at a tiny size: the variance experiment (with its resume and
+argument checks) and the benchmark."""
 
 import os
 
@@ -36,3 +37,13 @@ def test_variance_runs_end_to_end_and_resumes(tmp_path, capsys):
 def test_bad_arguments(argv, message):
     with pytest.raises(ValueError, match=message):
         variance.main(argv)
+
+
+def test_bench_runs_tiny(tmp_path):
+    from harness import bench
+
+    bench.main(["--particles", "6", "--repeats", "2", "--trials", "1", "--gp-steps", "2", "--estimators", "rp,tp",
+                "--out", str(tmp_path)])
+    table = pd.read_csv(tmp_path / "bench.csv")
+    assert set(table.estimator) == {"rp", "tp"} and (table.median_s > 0).all() and (table.peak_memory_mb > 0).all()
+    assert "Ratio to RP" in (tmp_path / "bench.md").read_text()

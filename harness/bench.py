@@ -1,0 +1,167 @@
+"""Benchmark: one gradient estimate of each estimator on the paper's cart-pole setting.
+
+    python -m harness.bench [--particles 100,300,1000] [--repeats 5] [--estimators ...] [--out reports]
+
+Setting: the cart-pole (``pipps`` preset, T = 30) with a GP trained on ``trials`` random
+episodes (15 x 30 = 450 points, as after the paper's last trial), the RBF policy at its
+initial parameters, float64. Per estimator and particle count: compile time, the median of
+``repeats`` timed calls after compilation, and XLA's peak memory of the compiled program
+(``memory_analysis``: arguments + outputs + temporaries; the CPU backend reports no live
+device memory). In the same run it
+measures the machine's float64 matmul rate and reports the RP gradient's achieved fraction of
+it under a stated flop model. Writes ``bench.md`` (and ``bench.csv``) under ``--out``; no
+wall-clock assertions anywhere: compare the ratios measured in one run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import platform
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+import estimators
+import tasks
+from estimators.base import task_problem
+from harness.cli import int_list, parse, str_list
+from harness.episodic import add_episode
+from models import gp
+from tasks.rollout import run_episode
+
+
+@dataclasses.dataclass(frozen=True)
+class Args:
+    """Time one gradient estimate of each estimator (compile time, median, peak memory)."""
+
+    estimators: str = "rp,rp_fs,gr,gr_fs,lr,biw_lr,tp"
+    particles: str = "100,300,1000"
+    repeats: int = 5
+    trials: int = 15
+    gp_steps: int = 30
+    seed: int = 0
+    out: str = "reports"
+
+
+def matmul_rate(n: int = 2048, repeats: int = 5) -> float:
+    """Float64 FLOP/s of an n x n matmul (median of ``repeats``)."""
+    a = jax.random.normal(jax.random.key(0), (n, n), jnp.float64)
+    f = jax.jit(lambda x: x @ x)
+    jax.block_until_ready(f(a))
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(f(a))
+        times.append(time.perf_counter() - start)
+    return 2 * n**3 / float(np.median(times))
+
+
+def gp_gradient_flops(num_particles: int, horizon: int, num_points: int, outputs: int) -> float:
+    """Flop model of a GP rollout's forward + gradient: per particle, step and output the
+    predictive variance's ``v = L^-1 k`` costs 2 N^2 (dominant); the backward pass about twice
+    the forward: 3 * 2 N^2 * E * P * T."""
+    return 3 * 2 * num_points**2 * outputs * num_particles * horizon
+
+
+def bench_problem(args: Args):
+    task = tasks.make("cartpole")
+    model = gp.GPModel(task)
+    data = model.empty_data(args.trials * task.horizon)
+    key = jax.random.key(args.seed)
+    for trial in range(args.trials):
+        data = add_episode(task, data, run_episode(task, jax.random.fold_in(key, trial)))
+    posterior = gp.fit(data, num_steps=args.gp_steps)
+    policy = task.default_policy()
+    return task, task_problem(task, model, posterior, policy=policy), policy.init(jax.random.fold_in(key, 999)), int(
+        data.num_valid)
+
+
+def time_estimator(estimator, problem, theta, num_particles: int, repeats: int) -> dict:
+    jitted = jax.jit(estimator, static_argnums=3)
+    key = jax.random.key(1)
+    start = time.perf_counter()
+    compiled = jitted.lower(problem, theta, key, num_particles).compile()
+    compile_s = time.perf_counter() - start
+    jax.block_until_ready(compiled(problem, theta, key))
+    times = []
+    for r in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(compiled(problem, theta, jax.random.fold_in(key, r)))
+        times.append(time.perf_counter() - start)
+    memory = compiled.memory_analysis()  # CPU reports peak_memory_in_bytes = 0: add the buffers
+    buffers = (memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes
+               if memory is not None else np.nan)
+    return {"median_s": float(np.median(times)), "compile_s": compile_s, "peak_memory_mb": buffers / 2**20}
+
+
+def main(argv=None) -> None:
+    args = parse(Args, argv)
+    jax.config.update("jax_enable_x64", True)
+    for name in str_list(args.estimators):
+        estimators.make(name)
+    print("bench: building the GP ...", file=sys.stderr, flush=True)
+    task, problem, theta, num_points = bench_problem(args)
+    rate = matmul_rate()
+    rows = []
+    cells = [(name, p) for p in int_list(args.particles) for name in str_list(args.estimators)]
+    for index, (name, num_particles) in enumerate(cells):
+        stats = time_estimator(estimators.make(name), problem, theta, num_particles, args.repeats)
+        rows.append({"estimator": name, "particles": num_particles, **stats})
+        print(f"[{index + 1}/{len(cells)}] {name:7s} P={num_particles:5d}: {stats['median_s']:.3f} s "
+              f"(compile {stats['compile_s']:.1f} s, peak {stats['peak_memory_mb']:.0f} MiB)",
+              file=sys.stderr, flush=True)
+    table = pd.DataFrame(rows)
+    os.makedirs(args.out, exist_ok=True)
+    table.to_csv(os.path.join(args.out, "bench.csv"), index=False)
+    write_report(args, table, rate, task, num_points)
+
+
+def write_report(args: Args, table: pd.DataFrame, rate: float, task, num_points: int) -> None:
+    median = table.pivot(index="estimator", columns="particles", values="median_s")
+    ratio = median.div(median.loc["rp"]) if "rp" in median.index else None
+    lines = [
+        "# Benchmark: one gradient estimate, cart-pole, GP model",
+        "",
+        f"Command: `python -m harness.bench --particles {args.particles} --repeats {args.repeats} "
+        f"--trials {args.trials}`",
+        "",
+        f"- Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
+        f"JAX {jax.__version__} on {jax.default_backend()}; float64.",
+        f"- Setting: cart-pole `pipps` preset, T = {task.horizon}, GP with {num_points} training points "
+        f"({args.trials} random episodes, {args.gp_steps} L-BFGS steps), RBF policy at its initial parameters.",
+        f"- Matmul rate measured in this run: {rate / 1e9:.1f} GFLOP/s (float64, 2048 x 2048).",
+        "",
+        "Median seconds per estimate after compilation (rows: estimator; columns: particles):",
+        "",
+        median.reset_index().to_markdown(index=False, floatfmt=".3f"),
+        "",
+    ]
+    if ratio is not None:
+        lines += ["Ratio to RP (target: TP and BIW-LR at most 1.5 at P = 300):", "",
+                  ratio.reset_index().to_markdown(index=False, floatfmt=".2f"), ""]
+        rp = table[table.estimator == "rp"]
+        achieved = [gp_gradient_flops(p, task.horizon, num_points, task.model_state_dim) / t
+                    for p, t in zip(rp.particles, rp.median_s)]
+        lines += ["RP gradient's achieved rate under the flop model of `gp_gradient_flops` "
+                  "(3 x 2 N^2 per particle, step and output):", "",
+                  "| particles | GFLOP/s | fraction of matmul rate |", "|---|---|---|"]
+        lines += [f"| {p} | {a / 1e9:.2f} | {a / rate:.2f} |" for p, a in zip(rp.particles, achieved)]
+        lines.append("")
+    lines += ["Compile seconds:", "",
+              table.pivot(index="estimator", columns="particles", values="compile_s").reset_index().to_markdown(
+                  index=False, floatfmt=".1f"), "",
+              "Memory of the compiled program (MiB; arguments + outputs + temporaries, XLA memory_analysis):", "",
+              table.pivot(index="estimator", columns="particles", values="peak_memory_mb").reset_index().to_markdown(
+                  index=False, floatfmt=".0f"), ""]
+    with open(os.path.join(args.out, "bench.md"), "w") as f:
+        f.write("\n".join(lines))
+    print(f"wrote {os.path.join(args.out, 'bench.md')}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
