@@ -71,7 +71,8 @@ def task_problem(task: Task, model: Model, model_params: Any = None, *, policy: 
 class Estimate(NamedTuple):
     """value: the Monte Carlo estimate of J; grad: dJ/dtheta (pytree like theta);
     grad_var: per-parameter variance of ``grad`` (per-particle variance / P, like theta);
-    aux: diagnostics (arrays; e.g. ``k_lr`` (T,), ``ess`` (T,), ``nan_count``)."""
+    aux: diagnostics (arrays; ``nan_count``, ``particle_grads`` (leaves (P, ...)), and e.g.
+    ``k_lr`` (T,), ``ess`` (T,))."""
 
     value: jax.Array
     grad: Any
@@ -157,14 +158,16 @@ def per_particle(theta, num_particles: int):
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (num_particles,) + jnp.shape(x)), theta)
 
 
-def summarise(per_particle_grads) -> tuple[Any, Any, jax.Array]:
-    """From per-particle gradient estimates g_i (leaves (P, ...)): the mean gradient, the
-    variance of that mean ``var_i(g_i) / P`` (ddof 1), and the count of non-finite entries."""
+def particle_estimate(value: jax.Array, per_particle_grads, extra_nans=0, **aux) -> Estimate:
+    """The Estimate from per-particle gradient estimates g_i (leaves (P, ...)): the mean
+    gradient, the variance of that mean ``var_i(g_i) / P`` (ddof 1), and in aux the count of
+    non-finite entries (plus ``extra_nans``) and the g_i themselves as ``particle_grads`` (for
+    statistics of projections, e.g. a directional derivative's confidence interval)."""
     num = jax.tree.leaves(per_particle_grads)[0].shape[0]
     grad = jax.tree.map(lambda g: g.mean(axis=0), per_particle_grads)
     grad_var = jax.tree.map(lambda g: g.var(axis=0, ddof=1) / num, per_particle_grads)
-    nan_count = sum(jnp.sum(~jnp.isfinite(g)) for g in jax.tree.leaves(per_particle_grads))
-    return grad, grad_var, nan_count
+    nan_count = sum(jnp.sum(~jnp.isfinite(g)) for g in jax.tree.leaves(per_particle_grads)) + extra_nans
+    return Estimate(value, grad, grad_var, {**aux, "nan_count": nan_count, "particle_grads": per_particle_grads})
 
 
 def prepared(problem: Problem, theta):
@@ -195,17 +198,15 @@ def prepared(problem: Problem, theta):
     return problem.policy.prepare(theta), to_theta
 
 
-def objective_gradient(objective: Callable[[Any], tuple[jax.Array, Any]], problem: Problem, theta,
+def particle_gradients(objective: Callable[[Any], tuple[jax.Array, Any]], problem: Problem, theta,
                        num_particles: int):
     """Differentiate a particle objective ``objective(nets) -> (mean over particles, aux)``
     with respect to per-particle copies of the prepared policy parameters; returns (value,
-    grad, grad_var, nan_count, aux). Particle i's estimate is ``P * d objective / d nets[i]``
-    mapped to theta."""
+    per-particle gradients (leaves (P, ...) like theta), aux). Particle i's estimate is
+    ``P * d objective / d nets[i]`` mapped to theta."""
     net, to_theta = prepared(problem, theta)
     (value, aux), grads = jax.value_and_grad(objective, has_aux=True)(per_particle(net, num_particles))
-    per_particle_grads = to_theta(jax.tree.map(lambda g: num_particles * g, grads))
-    grad, grad_var, nan_count = summarise(per_particle_grads)
-    return value, grad, grad_var, nan_count, aux
+    return value, to_theta(jax.tree.map(lambda g: num_particles * g, grads)), aux
 
 
 def theta_dtype(theta):

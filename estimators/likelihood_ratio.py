@@ -23,7 +23,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from estimators.base import Estimate, Problem, Zeta, draw_noise, objective_gradient, rollout, theta_dtype
+from estimators.base import Estimate, Problem, Zeta, draw_noise, particle_estimate, particle_gradients, rollout, theta_dtype
 
 
 class ScoreStatistics(NamedTuple):
@@ -94,7 +94,7 @@ STATISTICS = {"lr": lr_statistics, "biw_lr": biw_statistics}
 @dataclasses.dataclass(frozen=True)
 class LikelihoodRatio:
     """LR (``weighting="lr"``) or BIW-LR (``weighting="biw_lr"``) estimator;
-    ``__call__(problem, theta, key, P) -> Estimate``; aux: ``ess`` (T,), ``nan_count``.
+    ``__call__(problem, theta, key, P) -> Estimate``; aux adds ``ess`` (T,).
 
     ``baseline=False`` drops the baseline: BIW-LR is then unbiased (the samples are a
     stratified draw from the mixture), while the paper's data-dependent baseline adds a bias
@@ -124,5 +124,5 @@ class LikelihoodRatio:
             surrogate = jax.vmap(score_surrogate)(traj.zetas, stats)  # (T, P)
             return surrogate.sum(axis=0).mean(), (fixed.returns.mean(), ess)
 
-        _, grad, grad_var, nan_count, (value, ess) = objective_gradient(objective, problem, theta, num_particles)
-        return Estimate(value, grad, grad_var, {"ess": ess, "nan_count": nan_count})
+        _, per_particle_grads, (value, ess) = particle_gradients(objective, problem, theta, num_particles)
+        return particle_estimate(value, per_particle_grads, ess=ess)

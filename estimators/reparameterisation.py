@@ -17,7 +17,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from estimators.base import Estimate, Problem, draw_noise, objective_gradient, rollout, theta_dtype
+from estimators.base import Estimate, Problem, draw_noise, particle_estimate, particle_gradients, rollout, theta_dtype
 
 
 def gaussian_resample(s_tilde: jax.Array, xi: jax.Array) -> jax.Array:
@@ -31,8 +31,7 @@ def gaussian_resample(s_tilde: jax.Array, xi: jax.Array) -> jax.Array:
 
 @dataclasses.dataclass(frozen=True)
 class Reparameterisation:
-    """RP (``gaussian_resampling=False``) or GR; ``__call__(problem, theta, key, P) -> Estimate``;
-    aux: ``nan_count``."""
+    """RP (``gaussian_resampling=False``) or GR; ``__call__(problem, theta, key, P) -> Estimate``."""
 
     gaussian_resampling: bool = False
 
@@ -47,5 +46,5 @@ class Reparameterisation:
             traj = rollout(problem, nets, s0, eps, resample=resample, resample_noise=xi)
             return traj.returns.mean(), None
 
-        value, grad, grad_var, nan_count, _ = objective_gradient(objective, problem, theta, num_particles)
-        return Estimate(value, grad, grad_var, {"nan_count": nan_count})
+        value, per_particle_grads, _ = particle_gradients(objective, problem, theta, num_particles)
+        return particle_estimate(value, per_particle_grads)

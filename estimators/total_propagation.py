@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from estimators.base import (Estimate, Problem, Trajectory, Zeta, draw_noise, next_state_distribution, prepared,
-                             summarise, theta_dtype)
+                             particle_estimate, theta_dtype)
 from estimators.likelihood_ratio import LikelihoodRatio, score_surrogate
 
 
@@ -45,8 +45,7 @@ def trace_of_variance(per_particle) -> jax.Array:
 class TotalPropagation:
     """TP estimator; ``weighting`` picks its likelihood-ratio part ("biw_lr" as in the paper,
     or "lr"); ``fixed_k`` forces k_LR (None: inverse-variance weighting).
-    ``__call__(problem, theta, key, P) -> Estimate``; aux: ``k_lr`` (T,), ``ess`` (T,),
-    ``nan_count``."""
+    ``__call__(problem, theta, key, P) -> Estimate``; aux adds ``k_lr`` (T,) and ``ess`` (T,)."""
 
     weighting: str = "biw_lr"
     fixed_k: float | None = None
@@ -94,6 +93,5 @@ class TotalPropagation:
         zeros = jax.tree.map(lambda x: jnp.zeros((num_particles,) + jnp.shape(x), x.dtype), theta)
         (_, per_particle_grads), k_lr = jax.lax.scan(
             backward, (jnp.zeros_like(s0), zeros), (traj.states[:-1], states, eps, zetas, stats), reverse=True)
-        grad, grad_var, nan_count = summarise(per_particle_grads)
-        aux = {"k_lr": k_lr, "ess": ess, "nan_count": nan_count + jnp.sum(~jnp.isfinite(k_lr))}
-        return Estimate(traj.returns.mean(), grad, grad_var, aux)
+        return particle_estimate(traj.returns.mean(), per_particle_grads, extra_nans=jnp.sum(~jnp.isfinite(k_lr)),
+                                 k_lr=k_lr, ess=ess)

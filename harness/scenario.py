@@ -5,6 +5,10 @@ From a seed: the task's random trial(s), then ``learned_trials`` trials of the p
 ``optimiser_steps`` steps of the paper's optimiser, run the policy once on the real system,
 add the data); finally the GP is refitted to all data. The result is theta0 (the policy after
 the last trial) and the GP posterior. The cache file's name is a hash of the settings.
+
+Every gradient experiment (variance, landscape, compare) starts from the same ``Setting``: the
+scenario's theta0, a fixed random unit direction d in parameter space (from the seed), and the
+problem under the chosen model (the scenario's GP, or the true dynamics in JAX or MJX).
 """
 
 from __future__ import annotations
@@ -18,14 +22,19 @@ import sys
 from typing import Any, NamedTuple
 
 import jax
+import jax.flatten_util
+import jax.numpy as jnp
 import numpy as np
 
 import estimators
 import tasks
-from estimators.base import task_problem
+from estimators.base import Problem, task_problem
 from harness.episodic import add_episode, data_capacity, optimise_policy
 from models import gp
+from models.simulator import SimulatorModel
 from tasks.rollout import run_episode
+
+MODELS = ("gp", "jax", "mjx")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,3 +113,73 @@ def load_or_build(args: ScenarioArgs, cache_dir: str) -> Scenario:
         pickle.dump(jax.tree.map(np.asarray, scenario), f)
     os.replace(path + ".tmp", path)
     return scenario
+
+
+@dataclasses.dataclass(frozen=True)
+class ExperimentArgs:
+    """The options every gradient experiment shares (their CLIs extend this dataclass)."""
+
+    task: str = "cartpole"
+    model: str = "gp"
+    seed: int = 0
+    out: str = "reports"
+    x64: bool = True
+    scenario_trials: int = 2
+    scenario_steps: int = 200
+    scenario_particles: int = 100
+
+    def __post_init__(self):
+        if self.model not in MODELS:
+            raise ValueError(f"unknown model {self.model!r}; valid models: {list(MODELS)}")
+        tasks.make(self.task)  # fails with the list of tasks
+
+    @property
+    def scenario(self) -> ScenarioArgs:
+        return ScenarioArgs(task=self.task, seed=self.seed, learned_trials=self.scenario_trials,
+                            optimiser_steps=self.scenario_steps, particles=self.scenario_particles)
+
+    @property
+    def scenario_name(self) -> str:
+        """The scenario's cache name (a hash of its settings), recorded in every result row."""
+        return os.path.basename(cache_path(self.scenario, ""))
+
+    def scenario_flags(self) -> str:
+        return (f"--scenario-trials {self.scenario_trials} --scenario-steps {self.scenario_steps} "
+                f"--scenario-particles {self.scenario_particles}")
+
+
+class Setting(NamedTuple):
+    """Where an experiment measures: ``problem`` under the chosen model, ``theta0`` and the unit
+    ``direction`` d (both pytrees like theta), and the scenario they come from."""
+
+    problem: Problem
+    theta0: Any
+    direction: Any
+    scenario: Scenario
+
+    def theta(self, delta: float):
+        """``theta0 + delta * d``."""
+        return jax.tree.map(lambda t, d: t + delta * d, self.theta0, self.direction)
+
+
+def unit_direction(theta, key: jax.Array):
+    """A random direction in parameter space with unit Euclidean norm, shaped like theta."""
+    flat, unravel = jax.flatten_util.ravel_pytree(theta)
+    d = jax.random.normal(key, flat.shape, flat.dtype)
+    return unravel(d / jnp.linalg.norm(d))
+
+
+def model_problem(task_name: str, model: str, scenario: Scenario) -> Problem:
+    """The task's problem under ``model``: "gp" (the scenario's GP) or the true dynamics."""
+    task = tasks.make(task_name)
+    if model == "gp":
+        return task_problem(task, gp.GPModel(task), scenario.posterior)
+    return task_problem(task, SimulatorModel(task, backend=model))
+
+
+def setting(args: ExperimentArgs, model: str | None = None) -> Setting:
+    """The Setting of ``args`` (under ``model`` if given, else ``args.model``), building or
+    loading the cached scenario under ``args.out``."""
+    scn = load_or_build(args.scenario, os.path.join(args.out, ".cache"))
+    direction = unit_direction(scn.theta, jax.random.fold_in(jax.random.key(args.seed), 1))
+    return Setting(model_problem(args.task, model or args.model, scn), scn.theta, direction, scn)

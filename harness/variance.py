@@ -17,52 +17,33 @@ import dataclasses
 import os
 import sys
 import time
+from typing import NamedTuple
 
 import jax
-import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
 import estimators
-import tasks
-from estimators.base import task_problem
 from harness import scenario as scenario_lib
 from harness.cli import float_list, int_list, parse, str_list
-from models import gp
-from models.simulator import SimulatorModel
+from harness.records import ResultTable
 
-MODELS = ("gp", "jax", "mjx")
 KEY_COLUMNS = ["task", "model", "estimator", "particles", "delta_theta", "repeats", "seed", "scenario"]
 
 
 @dataclasses.dataclass(frozen=True)
-class Args:
+class Args(scenario_lib.ExperimentArgs):
     """Gradient variance of each estimator against the particle count."""
 
-    task: str = "cartpole"
-    model: str = "gp"
     estimators: str = "rp,lr,biw_lr,tp"
     particles: str = "10,30,100,300"
     repeats: int = 30
     delta_theta: str = "0,1.5"
-    seed: int = 0
-    out: str = "reports"
     paper: bool = False
-    x64: bool = True
-    scenario_trials: int = 2
-    scenario_steps: int = 200
-    scenario_particles: int = 100
-
-    @property
-    def scenario(self) -> scenario_lib.ScenarioArgs:
-        return scenario_lib.ScenarioArgs(task=self.task, seed=self.seed, learned_trials=self.scenario_trials,
-                                         optimiser_steps=self.scenario_steps, particles=self.scenario_particles)
 
     def __post_init__(self):
-        if self.model not in MODELS:
-            raise ValueError(f"unknown model {self.model!r}; valid models: {list(MODELS)}")
-        tasks.make(self.task)  # fails with the list of tasks
+        super().__post_init__()
         for name in str_list(self.estimators):
             estimators.make(name)  # fails with the list of estimators
         if self.repeats < 2:
@@ -78,88 +59,84 @@ class Args:
 
 
 def flatten(tree) -> jax.Array:
+    """A pytree's leaves as one vector."""
     return jnp.concatenate([jnp.ravel(x) for x in jax.tree.leaves(tree)])
 
 
-def unit_direction(theta, key: jax.Array):
-    """A random direction in parameter space with unit Euclidean norm, shaped like theta."""
-    flat, unravel = jax.flatten_util.ravel_pytree(theta)
-    d = jax.random.normal(key, flat.shape, flat.dtype)
-    return unravel(d / jnp.linalg.norm(d))
+class Repeats(NamedTuple):
+    """``repeats`` independent estimates: grads (R, n) flattened, values (R,), reported
+    variance traces (R,), mean k_LR and ESS per estimate (R,) (NaN where the estimator has
+    none), the total NaN count, seconds per estimate (after compilation) and compile seconds."""
+
+    grads: np.ndarray
+    values: np.ndarray
+    reported: np.ndarray
+    k_lr: np.ndarray
+    ess: np.ndarray
+    nan_count: int
+    seconds: float
+    compile_seconds: float
 
 
-def build_problem(args: Args, scn: scenario_lib.Scenario):
-    task = tasks.make(args.task)
-    if args.model == "gp":
-        return task_problem(task, gp.GPModel(task), scn.posterior)
-    return task_problem(task, SimulatorModel(task, backend=args.model))
-
-
-def measure_cell(estimator, problem, theta, num_particles: int, repeats: int, key: jax.Array) -> dict:
-    """``repeats`` independent estimates at theta -> the cell's statistics."""
+def repeated_estimates(estimator, problem, theta, num_particles: int, repeats: int, key: jax.Array) -> Repeats:
+    """Estimate ``repeats`` times with keys ``fold_in(key, r)``."""
     run = jax.jit(estimator, static_argnums=3)
     start = time.perf_counter()
     jax.block_until_ready(run(problem, theta, key, num_particles))
     compile_s = time.perf_counter() - start
-    grads, values, reported, k_lr, ess, nans = [], [], [], [], [], 0
+    rows = []
     start = time.perf_counter()
     for r in range(repeats):
         e = run(problem, theta, jax.random.fold_in(key, r), num_particles)
-        grads.append(np.asarray(flatten(e.grad)))
-        values.append(float(e.value))
-        reported.append(float(jnp.sum(flatten(e.grad_var))))
-        nans += int(e.aux["nan_count"])
-        if "k_lr" in e.aux:
-            k_lr.append(np.asarray(e.aux["k_lr"]))
-        if "ess" in e.aux:
-            ess.append(np.asarray(e.aux["ess"]))
+        rows.append((np.asarray(flatten(e.grad)), float(e.value), float(jnp.sum(flatten(e.grad_var))),
+                     float(jnp.mean(e.aux["k_lr"])) if "k_lr" in e.aux else np.nan,
+                     float(jnp.mean(e.aux["ess"])) if "ess" in e.aux else np.nan, int(e.aux["nan_count"])))
     seconds = (time.perf_counter() - start) / repeats
-    grads = np.stack(grads)
-    finite = np.all(np.isfinite(grads), axis=1)
+    grads, values, reported, k_lr, ess, nans = zip(*rows)
+    return Repeats(np.stack(grads), np.array(values), np.array(reported), np.array(k_lr), np.array(ess),
+                   sum(nans), seconds, compile_s)
+
+
+def cell_statistics(rep: Repeats) -> dict:
+    """The variance (trace of the covariance of the finite estimates) and diagnostics."""
+    finite = np.all(np.isfinite(rep.grads), axis=1)
+    grads = rep.grads[finite]
     return {
-        "variance": float(np.sum(np.var(grads[finite], axis=0, ddof=1))) if finite.sum() > 1 else np.nan,
-        "reported_variance": float(np.nanmean(reported)),
-        "grad_norm": float(np.linalg.norm(grads[finite].mean(axis=0))) if finite.any() else np.nan,
-        "value": float(np.mean(values)),
-        "value_std": float(np.std(values, ddof=1)),
-        "mean_k_lr": float(np.nanmean(k_lr)) if k_lr else np.nan,
-        "mean_ess": float(np.nanmean(ess)) if ess else np.nan,
-        "nan_count": nans,
+        "variance": float(np.sum(np.var(grads, axis=0, ddof=1))) if len(grads) > 1 else np.nan,
+        "reported_variance": float(np.nanmean(rep.reported)),
+        "grad_norm": float(np.linalg.norm(grads.mean(axis=0))) if len(grads) else np.nan,
+        "value": float(np.mean(rep.values)),
+        "value_std": float(np.std(rep.values, ddof=1)),
+        "mean_k_lr": float(np.nanmean(rep.k_lr)) if np.isfinite(rep.k_lr).any() else np.nan,
+        "mean_ess": float(np.nanmean(rep.ess)) if np.isfinite(rep.ess).any() else np.nan,
+        "nan_count": rep.nan_count,
         "nonfinite_estimates": int((~finite).sum()),
-        "seconds_per_estimate": seconds,
-        "compile_seconds": compile_s,
+        "seconds_per_estimate": rep.seconds,
+        "compile_seconds": rep.compile_seconds,
     }
 
 
 def run(args: Args) -> pd.DataFrame:
-    """Measure every missing cell (appending to the CSV) and return the whole table."""
-    os.makedirs(args.out, exist_ok=True)
-    csv = os.path.join(args.out, f"variance_{args.task}_{args.model}.csv")
-    done = pd.read_csv(csv) if os.path.exists(csv) else pd.DataFrame(columns=KEY_COLUMNS)
-    done_keys = set(map(tuple, done[KEY_COLUMNS].astype(str).to_numpy()))
-    scn = scenario_lib.load_or_build(args.scenario, os.path.join(args.out, ".cache"))
-    problem = build_problem(args, scn)
-    key = jax.random.key(args.seed)
-    direction = unit_direction(scn.theta, jax.random.fold_in(key, 1))
+    """Measure every missing cell (appending to the CSV) and return this run's table."""
+    table = ResultTable(os.path.join(args.out, f"variance_{args.task}_{args.model}.csv"), KEY_COLUMNS)
+    where = scenario_lib.setting(args)
+    key = jax.random.fold_in(jax.random.key(args.seed), 2)
     cells = [(d, name, p) for d in float_list(args.delta_theta) for name in str_list(args.estimators)
              for p in args.particle_counts]
     for index, (delta, name, num_particles) in enumerate(cells):
         row_key = dict(task=args.task, model=args.model, estimator=name, particles=num_particles,
-                       delta_theta=delta, repeats=args.num_repeats, seed=args.seed,
-                       scenario=os.path.basename(scenario_lib.cache_path(args.scenario, "")))
-        if tuple(str(v) for v in row_key.values()) in done_keys:
+                       delta_theta=delta, repeats=args.num_repeats, seed=args.seed, scenario=args.scenario_name)
+        if table.has(row_key):
             continue
-        theta = jax.tree.map(lambda t, d: t + delta * d, scn.theta, direction)
-        stats = measure_cell(estimators.make(name), problem, theta, num_particles, args.num_repeats,
-                             jax.random.fold_in(key, 2))
-        row = pd.DataFrame([{**row_key, **stats}])
-        row.to_csv(csv, mode="a", header=not os.path.exists(csv), index=False)
+        rep = repeated_estimates(estimators.make(name), where.problem, where.theta(delta), num_particles,
+                                 args.num_repeats, key)
+        stats = cell_statistics(rep)
+        table.append({**row_key, **stats})
         print(f"[{index + 1}/{len(cells)}] {name:7s} P={num_particles:5d} delta={delta:g}: "
               f"variance {stats['variance']:.3e}  ({stats['seconds_per_estimate']:.2f} s/estimate, "
               f"compile {stats['compile_seconds']:.1f} s)", file=sys.stderr, flush=True)
-    table = pd.read_csv(csv)
-    scenario_name = os.path.basename(scenario_lib.cache_path(args.scenario, ""))
-    return table[(table.seed == args.seed) & (table.repeats == args.num_repeats) & (table.scenario == scenario_name)]
+    rows = table.read()
+    return rows[(rows.seed == args.seed) & (rows.repeats == args.num_repeats) & (rows.scenario == args.scenario_name)]
 
 
 def findings(table: pd.DataFrame) -> list[str]:
@@ -195,7 +172,7 @@ def findings(table: pd.DataFrame) -> list[str]:
     return lines
 
 
-def write_report(args: Args, table: pd.DataFrame, scn_args: scenario_lib.ScenarioArgs) -> None:
+def write_report(args: Args, table: pd.DataFrame) -> None:
     """Markdown (settings, variance table, findings) and the log-log PNG."""
     import matplotlib
 
@@ -225,10 +202,9 @@ def write_report(args: Args, table: pd.DataFrame, scn_args: scenario_lib.Scenari
         f"Command: `python -m harness.variance --task {args.task} --model {args.model} "
         f"--estimators {args.estimators} --particles {','.join(map(str, args.particle_counts))} "
         f"--repeats {args.num_repeats} --delta-theta {args.delta_theta} --seed {args.seed} "
-        f"--scenario-trials {args.scenario_trials} --scenario-steps {args.scenario_steps} "
-        f"--scenario-particles {args.scenario_particles}`",
+        f"{args.scenario_flags()}`",
         "",
-        f"- Scenario: {scn_args.describe()}.",
+        f"- Scenario: {args.scenario.describe()}.",
         f"- Variance: trace of the covariance of {args.num_repeats} independent gradient estimates "
         f"(float{'64' if args.x64 else '32'}); theta = theta0 + delta d, d a fixed random unit direction.",
         "",
@@ -253,7 +229,7 @@ def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
     table = run(args)
-    write_report(args, table, args.scenario)
+    write_report(args, table)
     print(f"wrote {os.path.join(args.out, f'variance_{args.task}_{args.model}')}.{{csv,md,png}}", file=sys.stderr)
 
 

@@ -3,6 +3,7 @@ argument checks) and the benchmark."""
 
 import os
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -47,3 +48,55 @@ def test_bench_runs_tiny(tmp_path):
     table = pd.read_csv(tmp_path / "bench.csv")
     assert set(table.estimator) == {"rp", "tp"} and (table.median_s > 0).all() and (table.peak_memory_mb > 0).all()
     assert "Ratio to RP" in (tmp_path / "bench.md").read_text()
+
+
+def test_alignment_statistics_on_known_cases():
+    from harness.compare import alignment
+
+    ref = np.array([3.0, 4.0, 0.0])
+    orth = np.array([0.0, 0.0, 5.0])  # orthogonal to ref, same norm
+    exact = alignment(np.stack([ref, ref, np.full(3, np.nan)]), ref)  # the NaN row is dropped
+    assert exact["cosine"] == pytest.approx(1) and exact["rel_error"] == pytest.approx(0)
+    assert exact["cosine_ci"] == pytest.approx(0, abs=1e-12)
+    tilted = alignment(np.stack([ref + orth, ref - orth]), ref)
+    assert tilted["cosine"] == pytest.approx(1 / np.sqrt(2)) and tilted["rel_error"] == pytest.approx(1)
+    assert tilted["cosine_of_mean"] == pytest.approx(1)  # the errors cancel in the mean
+    opposite = alignment(np.stack([-ref, -2 * ref]), ref)
+    assert opposite["cosine"] == pytest.approx(-1) and opposite["rel_error"] == pytest.approx(2.5)
+    assert opposite["rel_error_ci"] == pytest.approx(1.96 * np.std([2, 3], ddof=1) / np.sqrt(2))
+
+
+def test_landscape_runs_end_to_end_and_resumes(tmp_path, capsys):
+    from harness import landscape
+
+    argv = ["--particles", "6", "--points", "2", "--grid", "3", "--scenario-trials", "1", "--scenario-steps", "3",
+            "--scenario-particles", "5", "--out", str(tmp_path)]
+    landscape.main(argv)
+    stem = tmp_path / "landscape_cartpole_gp"
+    rows = pd.read_csv(f"{stem}.csv")
+    assert len(rows) == 2 and np.isfinite(rows[["value", "fd_slope", "tp_grad", "lr_ci", "ftle_mean"]]).all().all()
+    assert os.path.getsize(f"{stem}.png") > 1000 and "FTLE" in open(f"{stem}.md").read()
+    capsys.readouterr()
+    landscape.main(argv)  # resumes: nothing measured again
+    assert "delta=" not in capsys.readouterr().err and len(pd.read_csv(f"{stem}.csv")) == 2
+
+
+def test_landscape_rejects_an_unknown_slice_dimension():
+    from harness import landscape
+
+    with pytest.raises(ValueError, match="slice_dims must name two"):
+        landscape.main(["--slice-dims", "x,phi"])
+
+
+def test_compare_runs_end_to_end(tmp_path):
+    from harness import compare
+
+    compare.main(["--particles", "4", "--repeats", "2", "--estimators", "lr,tp", "--reference-particles", "8",
+                  "--reference-repeats", "2", "--scenario-trials", "1", "--scenario-steps", "3",
+                  "--scenario-particles", "5", "--out", str(tmp_path)])
+    rows = pd.read_csv(tmp_path / "compare_cartpole.csv")
+    assert set(rows.model) == {"gp", "jax"} and len(rows) == 4
+    assert rows.cosine.between(-1, 1).all() and (rows.variance > 0).all()
+    assert "cosine gp" in (tmp_path / "compare_cartpole.md").read_text()
+    with pytest.raises(ValueError, match="reference must be a true-dynamics model"):
+        compare.main(["--reference-model", "gp"])

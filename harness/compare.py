@@ -1,0 +1,184 @@
+"""Learned model versus true dynamics: gradient variance and direction, per estimator.
+
+    python -m harness.compare --task cartpole [--models gp,jax] [--estimators rp,lr,biw_lr,tp]
+        [--particles 10,30,100,300] [--repeats 20] [--reference-particles 1000]
+        [--reference-repeats 30] [--out DIR]
+
+At theta0 of the scenario (``harness.scenario``; the same theta0 and task for every model):
+
+- the reference: the true gradient, estimated by ``reference_repeats`` independent estimates of
+  ``reference_estimator`` with ``reference_particles`` particles on the true dynamics
+  (``reference_model``); its own relative standard error is reported;
+- for each model, estimator and particle count, ``repeats`` independent estimates g_r: their
+  variance (trace of the covariance) and, against the reference g*, the cosine similarity
+  ``g_r . g* / (|g_r| |g*|)`` and the relative error ``|g_r - g*| / |g*|``, each as a mean over
+  repeats with a 95 % interval (normal, 1.96 standard errors), and the cosine of the mean
+  gradient (what averaging many estimates would give: the model's bias, not the noise).
+
+Rows go to ``compare_{task}.csv`` as each cell finishes (a rerun resumes); the reference to
+``.cache/``; the markdown beside the CSV.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+
+import jax
+import numpy as np
+import pandas as pd
+
+import estimators
+from harness import scenario as scenario_lib
+from harness.cli import int_list, parse, str_list
+from harness.records import ResultTable
+from harness.variance import cell_statistics, repeated_estimates
+
+KEY_COLUMNS = ["task", "model", "estimator", "particles", "repeats", "seed", "scenario", "reference"]
+Z95 = 1.96
+
+
+@dataclasses.dataclass(frozen=True)
+class Args(scenario_lib.ExperimentArgs):
+    """Learned-model against true-dynamics gradients: variance, cosine and relative error."""
+
+    models: str = "gp,jax"
+    estimators: str = "rp,lr,biw_lr,tp"
+    particles: str = "10,30,100,300"
+    repeats: int = 20
+    reference_model: str = "jax"
+    reference_estimator: str = "lr"
+    reference_particles: int = 1000
+    reference_repeats: int = 30
+
+    def __post_init__(self):
+        super().__post_init__()
+        for model in str_list(self.models) + [self.reference_model]:
+            if model not in scenario_lib.MODELS:
+                raise ValueError(f"unknown model {model!r}; valid models: {list(scenario_lib.MODELS)}")
+        if self.reference_model == "gp":
+            raise ValueError("the reference must be a true-dynamics model (jax or mjx), not gp")
+        for name in str_list(self.estimators) + [self.reference_estimator]:
+            estimators.make(name)  # fails with the list of estimators
+        if self.repeats < 2 or self.reference_repeats < 2:
+            raise ValueError("repeats and reference_repeats must be >= 2")
+
+    @property
+    def reference_name(self) -> str:
+        return (f"{self.reference_model}-{self.reference_estimator}-P{self.reference_particles}"
+                f"-R{self.reference_repeats}")
+
+
+def alignment(grads: np.ndarray, reference: np.ndarray) -> dict:
+    """Cosine similarity and relative error of each estimate (rows of grads (R, n)) against
+    the reference (n,): means over the finite rows with 95 % half-widths, and the cosine of
+    the mean estimate."""
+    grads = grads[np.all(np.isfinite(grads), axis=1)]
+    ref_norm = np.linalg.norm(reference)
+    cosine = grads @ reference / (np.linalg.norm(grads, axis=1) * ref_norm)
+    rel_error = np.linalg.norm(grads - reference, axis=1) / ref_norm
+    mean = grads.mean(axis=0)
+    half = lambda x: Z95 * x.std(ddof=1) / np.sqrt(len(x)) if len(x) > 1 else np.nan  # noqa: E731
+    return {
+        "cosine": float(cosine.mean()), "cosine_ci": float(half(cosine)),
+        "rel_error": float(rel_error.mean()), "rel_error_ci": float(half(rel_error)),
+        "cosine_of_mean": float(mean @ reference / (np.linalg.norm(mean) * ref_norm)),
+    }
+
+
+def reference_gradient(args: Args, theta0, key: jax.Array) -> tuple[np.ndarray, float]:
+    """The reference gradient (n,) and its relative standard error, cached under ``out``."""
+    path = os.path.join(args.out, ".cache", f"reference_{args.task}_{args.scenario_name}_{args.reference_name}.npz")
+    if not os.path.exists(path):
+        print(f"reference: {args.reference_repeats} x {args.reference_estimator} with {args.reference_particles} "
+              f"particles on the {args.reference_model} dynamics", file=sys.stderr, flush=True)
+        where = scenario_lib.setting(args, args.reference_model)
+        rep = repeated_estimates(estimators.make(args.reference_estimator), where.problem, theta0,
+                                 args.reference_particles, args.reference_repeats, key)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        np.savez(path, grads=rep.grads)
+    grads = np.load(path)["grads"]
+    mean = grads.mean(axis=0)
+    standard_error = np.sqrt(np.sum(grads.var(axis=0, ddof=1)) / len(grads))
+    return mean, float(standard_error / np.linalg.norm(mean))
+
+
+def run(args: Args) -> tuple[pd.DataFrame, float]:
+    """Measure every missing cell; returns this run's rows and the reference's relative
+    standard error."""
+    table = ResultTable(os.path.join(args.out, f"compare_{args.task}.csv"), KEY_COLUMNS)
+    seed_key = jax.random.key(args.seed)
+    theta0 = scenario_lib.setting(args, "jax").theta0
+    reference, reference_rse = reference_gradient(args, theta0, jax.random.fold_in(seed_key, 4))
+    cells = [(m, e, p) for m in str_list(args.models) for e in str_list(args.estimators)
+             for p in int_list(args.particles)]
+    for index, (model, name, num_particles) in enumerate(cells):
+        row_key = dict(task=args.task, model=model, estimator=name, particles=num_particles, repeats=args.repeats,
+                       seed=args.seed, scenario=args.scenario_name, reference=args.reference_name)
+        if table.has(row_key):
+            continue
+        where = scenario_lib.setting(args, model)
+        rep = repeated_estimates(estimators.make(name), where.problem, theta0, num_particles, args.repeats,
+                                 jax.random.fold_in(seed_key, 2))
+        stats = {**cell_statistics(rep), **alignment(rep.grads, reference)}
+        table.append({**row_key, **stats})
+        print(f"[{index + 1}/{len(cells)}] {model:3s} {name:7s} P={num_particles:5d}: variance {stats['variance']:.3e}, "
+              f"cosine {stats['cosine']:.3f} +- {stats['cosine_ci']:.3f}, rel. error {stats['rel_error']:.3g}",
+              file=sys.stderr, flush=True)
+    rows = table.read()
+    keep = (rows.seed == args.seed) & (rows.repeats == args.repeats) & (rows.scenario == args.scenario_name) & (
+        rows.reference == args.reference_name)
+    return rows[keep], reference_rse
+
+
+def write_report(args: Args, rows: pd.DataFrame, reference_rse: float) -> None:
+    """The markdown: settings, the reference's quality, the table and what it says."""
+    models = str_list(args.models)
+    wide = rows.pivot_table(index=["estimator", "particles"], columns="model",
+                            values=["variance", "cosine", "cosine_ci", "rel_error", "rel_error_ci", "cosine_of_mean"])
+    table = pd.DataFrame(index=wide.index)
+    for model in models:
+        table[f"variance {model}"] = wide["variance"][model].map("{:.3g}".format)
+    learned = [m for m in models if m == "gp"]
+    true = [m for m in models if m != "gp"]
+    for model in true:
+        if learned:
+            table[f"variance gp / {model}"] = (wide["variance"]["gp"] / wide["variance"][model]).map("{:.3g}".format)
+    for model in models:
+        table[f"cosine {model}"] = [f"{c:.3f} +- {h:.3f}" for c, h in zip(wide["cosine"][model], wide["cosine_ci"][model])]
+        table[f"rel. error {model}"] = [f"{c:.3g} +- {h:.2g}" for c, h in
+                                        zip(wide["rel_error"][model], wide["rel_error_ci"][model])]
+        table[f"cosine of mean {model}"] = wide["cosine_of_mean"][model].map("{:.3f}".format)
+    lines = [
+        f"# Learned model against true dynamics: {args.task}",
+        "",
+        f"Command: `python -m harness.compare --task {args.task} --models {args.models} --estimators {args.estimators} "
+        f"--particles {args.particles} --repeats {args.repeats} --reference-model {args.reference_model} "
+        f"--reference-estimator {args.reference_estimator} --reference-particles {args.reference_particles} "
+        f"--reference-repeats {args.reference_repeats} --seed {args.seed} {args.scenario_flags()}`",
+        "",
+        f"- Scenario: {args.scenario.describe()}; every model is evaluated at its theta0.",
+        f"- Reference g*: the mean of {args.reference_repeats} {args.reference_estimator} estimates with "
+        f"{args.reference_particles} particles on the {args.reference_model} dynamics; its relative standard error "
+        f"(|standard error| / |g*|) is {reference_rse:.3f}, which bounds how close to 1 a cosine can be measured.",
+        f"- Per cell: {args.repeats} independent estimates; variance = trace of their covariance; cosine and relative "
+        "error are means over the estimates with 95 % intervals; 'cosine of mean' is that of their average.",
+        "",
+        table.reset_index().to_markdown(index=False, disable_numparse=True),
+        "",
+    ]
+    with open(os.path.join(args.out, f"compare_{args.task}.md"), "w") as f:
+        f.write("\n".join(lines))
+
+
+def main(argv=None) -> None:
+    args = parse(Args, argv)
+    jax.config.update("jax_enable_x64", args.x64)
+    rows, reference_rse = run(args)
+    write_report(args, rows, reference_rse)
+    print(f"wrote {os.path.join(args.out, f'compare_{args.task}')}.{{csv,md}}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
