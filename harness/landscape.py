@@ -241,6 +241,9 @@ def write_report(args: Args, rows: pd.DataFrame, slices: dict) -> None:
     for index, (ax, name) in enumerate(zip(top[1:], names)):
         band(ax, rows.fd_slope, rows.fd_slope_ci, f"FD slope, h = {args.fd_step:g}", "gray")
         band(ax, rows[f"{name}_grad"], rows[f"{name}_ci"], f"{name}: d . grad", f"C{index}")
+        fd_scale = float((rows.fd_slope.abs() + rows.fd_slope_ci).max())
+        if float((rows[f"{name}_grad"].abs() + rows[f"{name}_ci"]).max()) > 1e3 * fd_scale:
+            ax.set_yscale("symlog", linthresh=fd_scale)  # RP's chaotic estimates span many decades
         ax.set_title(f"({chr(ord('b') + index)}) {name} gradient along d")
         ax.legend(fontsize=8)
     for ax in top:

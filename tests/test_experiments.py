@@ -13,6 +13,13 @@ TINY = ["--particles", "5,8", "--repeats", "3", "--estimators", "rp,biw_lr,tp", 
         "--scenario-steps", "3", "--scenario-particles", "5"]
 
 
+@pytest.mark.slow
+def test_variance_runs_on_mjx(tmp_path):
+    variance.main(TINY + ["--model", "mjx", "--estimators", "rp,tp", "--particles", "5", "--out", str(tmp_path)])
+    table = pd.read_csv(tmp_path / "variance_cartpole_mjx.csv")
+    assert len(table) == 4 and (table.variance > 0).all() and (table.nan_count == 0).all()
+
+
 def test_variance_runs_end_to_end_and_resumes(tmp_path, capsys):
     out = str(tmp_path)
     variance.main(TINY + ["--out", out])
@@ -66,13 +73,14 @@ def test_alignment_statistics_on_known_cases():
     assert opposite["rel_error_ci"] == pytest.approx(1.96 * np.std([2, 3], ddof=1) / np.sqrt(2))
 
 
-def test_landscape_runs_end_to_end_and_resumes(tmp_path, capsys):
+@pytest.mark.parametrize("model", ["gp", "jax", pytest.param("mjx", marks=pytest.mark.slow)])
+def test_landscape_runs_end_to_end_and_resumes(tmp_path, capsys, model):
     from harness import landscape
 
-    argv = ["--particles", "6", "--points", "2", "--grid", "3", "--scenario-trials", "1", "--scenario-steps", "3",
-            "--scenario-particles", "5", "--out", str(tmp_path)]
+    argv = ["--model", model, "--particles", "6", "--points", "2", "--grid", "3", "--scenario-trials", "1",
+            "--scenario-steps", "3", "--scenario-particles", "5", "--out", str(tmp_path)]
     landscape.main(argv)
-    stem = tmp_path / "landscape_cartpole_gp"
+    stem = tmp_path / f"landscape_cartpole_{model}"
     rows = pd.read_csv(f"{stem}.csv")
     assert len(rows) == 2 and np.isfinite(rows[["value", "fd_slope", "tp_grad", "lr_ci", "ftle_mean"]]).all().all()
     assert os.path.getsize(f"{stem}.png") > 1000 and "FTLE" in open(f"{stem}.md").read()
