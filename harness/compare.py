@@ -132,6 +132,28 @@ def run(args: Args) -> tuple[pd.DataFrame, float]:
     return rows[keep], reference_rse
 
 
+def findings(args: Args, rows: pd.DataFrame) -> list[str]:
+    """Per estimator: the learned/true variance ratios and the cosines at the largest P."""
+    lines = ["## What the comparison shows", ""]
+    models = str_list(args.models)
+    true = [m for m in models if m != "gp"]
+    for name, group in rows.groupby("estimator"):
+        by_model = group.set_index(["model", "particles"]).sort_index()
+        parts = []
+        if "gp" in models:
+            for model in true:
+                ratio = by_model.loc["gp"].variance / by_model.loc[model].variance
+                parts.append(f"variance gp / {model} {ratio.min():.2g}-{ratio.max():.2g} over P")
+        top = int(group.particles.max())
+        for model in models:
+            cell = by_model.loc[(model, top)]
+            parts.append(f"cosine with g* at P = {top} on {model}: {cell.cosine:.3f} +- {cell.cosine_ci:.3f} "
+                         f"(of the mean: {cell.cosine_of_mean:.3f})")
+        lines.append(f"- {name}: " + "; ".join(parts) + ".")
+    lines.append("")
+    return lines
+
+
 def write_report(args: Args, rows: pd.DataFrame, reference_rse: float) -> None:
     """The markdown: settings, the reference's quality, the table and what it says."""
     models = str_list(args.models)
@@ -165,6 +187,7 @@ def write_report(args: Args, rows: pd.DataFrame, reference_rse: float) -> None:
         f"- Per cell: {args.repeats} independent estimates; variance = trace of their covariance; cosine and relative "
         "error are means over the estimates with 95 % intervals; 'cosine of mean' is that of their average.",
         "",
+        *findings(args, rows),
         table.reset_index().to_markdown(index=False, disable_numparse=True),
         "",
     ]
