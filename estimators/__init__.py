@@ -10,6 +10,7 @@ from typing import Callable
 
 from estimators.base import Estimate, FixedNoise, Problem, task_problem
 from estimators.likelihood_ratio import LikelihoodRatio
+from estimators.pilco import Pilco
 from estimators.reparameterisation import Reparameterisation
 from estimators.total_propagation import TotalPropagation
 
@@ -21,6 +22,7 @@ REGISTRY: dict[str, Callable[..., object]] = {
     "lr": lambda **kw: LikelihoodRatio("lr", **kw),
     "biw_lr": lambda **kw: LikelihoodRatio("biw_lr", **kw),
     "tp": lambda **kw: TotalPropagation(**kw),
+    "pilco": lambda: Pilco(),
 }
 
 

@@ -17,6 +17,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
+import numpy as np
 
 from models.prediction import Model
 from tasks.base import Task
@@ -27,7 +28,7 @@ from tasks.policies import Policy
     jax.tree_util.register_dataclass,
     data_fields=["model_params"],
     meta_fields=["model", "policy", "cost", "features", "initial_state", "horizon",
-                 "model_var_scale", "noise_var_scale"],
+                 "model_var_scale", "noise_var_scale", "moment_forms"],
 )
 @dataclasses.dataclass(frozen=True)
 class Problem:
@@ -37,6 +38,7 @@ class Problem:
     variances before sampling (the paper's variants: TP-sigma_f samples only the learned noise,
     ``model_var_scale=0``; TP+sigma_n uses ``noise_var_scale=100``). A pytree whose only data
     is ``model_params`` (e.g. the GP posterior), so it can be passed to jitted functions.
+    ``moment_forms`` (``estimators.pilco.MomentForms``) is what PILCO needs beyond this, or None.
     """
 
     model: Model
@@ -48,6 +50,7 @@ class Problem:
     horizon: int
     model_var_scale: float = 1.0
     noise_var_scale: float = 1.0
+    moment_forms: Any = None
 
 
 def task_problem(task: Task, model: Model, model_params: Any = None, *, policy: Policy | None = None,
@@ -65,7 +68,20 @@ def task_problem(task: Task, model: Model, model_params: Any = None, *, policy: 
         horizon=task.horizon if horizon is None else horizon,
         model_var_scale=model_var_scale,
         noise_var_scale=noise_var_scale,
+        moment_forms=task_moment_forms(task),
     )
+
+
+def task_moment_forms(task: Task):
+    """The task's features, cost and initial distribution for PILCO, or None if the task does
+    not declare them (or its initial distribution is not on the modelled state)."""
+    from estimators.pilco import MomentForms
+
+    if task.policy_feature_map is None or task.cost_form is None or task.model_state_dim != task.state_dim:
+        return None
+    cov = np.diag(np.asarray(task.init_std, float) ** 2)
+    return MomentForms(task.policy_feature_map, task.cost_form, tuple(np.asarray(task.init_mean, float).tolist()),
+                       tuple(map(tuple, cov.tolist())))
 
 
 class Estimate(NamedTuple):

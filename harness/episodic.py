@@ -7,7 +7,9 @@ are the pieces; ``harness.scenario`` and the learning experiment put them togeth
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+from typing import Any, Callable, NamedTuple
 
 import jax
 import optax
@@ -55,3 +57,38 @@ def evaluate_policy(task: Task, policy, theta, key: jax.Array, num_runs: int) ->
     """Returns (num_runs,) of the policy on the real system (evaluation only)."""
     episodes = jax.vmap(lambda k: run_episode(task, k, policy, theta))(jax.random.split(key, num_runs))
     return episodes.total_cost
+
+
+class TrialRecord(NamedTuple):
+    """One real-system trial of a learning run: ``trial`` (0-based over all trials), whether it
+    was ``learned`` (else random), the episode, and theta after it (None for random trials)."""
+
+    trial: int
+    learned: bool
+    episode: Episode
+    theta: Any
+
+
+def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
+                 optimise: Callable[[Problem, Any, jax.Array], Any], gp_steps: int,
+                 on_trial: Callable[[TrialRecord, gp.GPData], None] = lambda record, data: None):
+    """The paper's episodic loop: the task's random trials, then ``num_learned`` times: fit the
+    GP to all data (``gp_steps`` L-BFGS steps), ``theta = optimise(problem with the GP, theta,
+    key)``, one real trial, add its data. Keys: random trial r ``fold_in(key, r)``, theta0
+    ``fold_in(key, 10_000)``, optimisation and trial t ``fold_in(key, 20_000 + t)`` and
+    ``fold_in(key, 30_000 + t)``. ``on_trial`` sees each trial as it ends. Returns
+    (theta, data)."""
+    data = problem.model.empty_data(data_capacity(task, task.num_random_trials + num_learned))
+    for trial in range(task.num_random_trials):
+        episode = run_episode(task, jax.random.fold_in(key, trial))
+        data = add_episode(task, data, episode)
+        on_trial(TrialRecord(trial, False, episode, None), data)
+    theta = problem.policy.init(jax.random.fold_in(key, 10_000))
+    for trial in range(num_learned):
+        posterior = gp.fit(data, num_steps=gp_steps)
+        problem = dataclasses.replace(problem, model_params=posterior)
+        theta = optimise(problem, theta, jax.random.fold_in(key, 20_000 + trial))
+        episode = run_episode(task, jax.random.fold_in(key, 30_000 + trial), problem.policy, theta)
+        data = add_episode(task, data, episode)
+        on_trial(TrialRecord(task.num_random_trials + trial, True, episode, theta), data)
+    return theta, data

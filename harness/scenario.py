@@ -29,10 +29,9 @@ import numpy as np
 import estimators
 import tasks
 from estimators.base import Problem, task_problem
-from harness.episodic import add_episode, data_capacity, optimise_policy
+from harness.episodic import learning_run, optimise_policy
 from models import gp
 from models.simulator import SimulatorModel
-from tasks.rollout import run_episode
 
 MODELS = ("gp", "jax", "mjx")
 
@@ -69,28 +68,22 @@ class Scenario(NamedTuple):
 def build(args: ScenarioArgs) -> Scenario:
     """Run the scenario's trials (progress on stderr)."""
     task = tasks.make(args.task)
-    key = jax.random.key(args.seed)
-    policy = task.default_policy()
-    model = gp.GPModel(task)
-    problem = task_problem(task, model, policy=policy)
-    data = model.empty_data(data_capacity(task, task.num_random_trials + args.learned_trials))
-    returns = []
-    for trial in range(task.num_random_trials):
-        episode = run_episode(task, jax.random.fold_in(key, trial))
-        data = add_episode(task, data, episode)
-        returns.append(float(episode.total_cost))
-    theta = policy.init(jax.random.fold_in(key, 10_000))
     estimator = estimators.make(args.estimator)
-    for trial in range(args.learned_trials):
-        print(f"scenario: learned trial {trial + 1}/{args.learned_trials} "
-              f"({int(data.num_valid)} training points)", file=sys.stderr, flush=True)
-        posterior = gp.fit(data, num_steps=args.gp_steps)
-        problem = dataclasses.replace(problem, model_params=posterior)
-        theta, _ = optimise_policy(problem, theta, jax.random.fold_in(key, 20_000 + trial), estimator=estimator,
-                                   num_steps=args.optimiser_steps, num_particles=args.particles)
-        episode = run_episode(task, jax.random.fold_in(key, 30_000 + trial), policy, theta)
-        data = add_episode(task, data, episode)
-        returns.append(float(episode.total_cost))
+    returns = []
+
+    def optimise(problem, theta, key):
+        return optimise_policy(problem, theta, key, estimator=estimator, num_steps=args.optimiser_steps,
+                               num_particles=args.particles)[0]
+
+    def on_trial(record, data):
+        returns.append(float(record.episode.total_cost))
+        if record.trial + 1 < task.num_random_trials + args.learned_trials:
+            print(f"scenario: trial {record.trial + 1} done ({int(data.num_valid)} training points)", file=sys.stderr,
+                  flush=True)
+
+    problem = task_problem(task, gp.GPModel(task))
+    theta, data = learning_run(task, problem, jax.random.key(args.seed), args.learned_trials, optimise, args.gp_steps,
+                               on_trial)
     posterior = gp.fit(data, num_steps=args.gp_steps)
     return Scenario(data, posterior, theta, np.asarray(returns))
 

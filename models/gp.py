@@ -492,3 +492,25 @@ class GPModel:
             )
         diff = predict_difference(params, self.task.gp_inputs(s, u))
         return Prediction(mean=s + diff.mean, model_var=diff.model_var, noise_var=diff.noise_var)
+
+    def next_state_moments(self, params: GPPosterior, z_mean: jax.Array, z_cov: jax.Array,
+                           model_var_scale: float = 1.0, noise_var_scale: float = 1.0):
+        """PILCO's step for z = [s, u] ~ N(z_mean (S+U,), z_cov): the GP input g = [gp features
+        of s, u] by moment matching, the difference delta ~ GP(g) (with the model's uncertainty
+        unless ``model_var_scale`` is 0, plus ``noise_var_scale`` sn^2), and
+        ``s_tp1 = s + delta`` with ``cov(s, delta) = cov(s, z) io_g io_delta``. Returns
+        (mean (S,), cov (S, S))."""
+        from models.form_moments import map_moments
+        from models.moment_matching import gp_moments
+        from tasks.forms import with_controls
+
+        if self.task.gp_feature_map is None:
+            raise ValueError(f"task {self.task.name!r} declares no gp_feature_map: no moment matching")
+        S = self.task.model_state_dim
+        g = map_moments(with_controls(self.task.gp_feature_map, self.task.control_dim), z_mean, z_cov)
+        k_inv = None if model_var_scale == 0 else jnp.swapaxes(params.chol_inv, -1, -2) @ params.chol_inv
+        delta = gp_moments(params.inputs, params.alpha, params.log_hyp, g.mean, g.cov, k_inv, params.mask)
+        cross = (z_cov @ g.io @ delta.io)[:S]  # cov(s, delta)
+        noise = noise_var_scale * jnp.exp(2.0 * params.log_hyp[:, -1])
+        cov = z_cov[:S, :S] + delta.cov + cross + cross.T + jnp.diag(noise)
+        return z_mean[:S] + delta.mean, cov

@@ -16,9 +16,12 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from estimators.base import Problem
+from models.moment_matching import Moments
 from models.prediction import Prediction
+from tasks.forms import SaturatingCost, TrigLinearMap
 from tasks.policies import LinearParams, Policy
 
 
@@ -49,6 +52,14 @@ class LinearGaussianSystem:
         del params
         mean = _array(self.A) @ s + _array(self.B) @ u
         return Prediction(mean, _array(self.model_var).astype(s.dtype), _array(self.noise_var).astype(s.dtype))
+
+    def next_state_moments(self, params, z_mean: jax.Array, z_cov: jax.Array, model_var_scale: float = 1.0,
+                           noise_var_scale: float = 1.0):
+        """Exact: ``s_tp1 = [A B] z + noise`` for z = [s, u] ~ N(z_mean, z_cov) -> (mean, cov)."""
+        del params
+        F = jnp.concatenate([_array(self.A), _array(self.B)], axis=1).astype(z_mean.dtype)
+        v = model_var_scale * _array(self.model_var) + noise_var_scale * _array(self.noise_var)
+        return F @ z_mean, F @ z_cov @ F.T + jnp.diag(v).astype(z_mean.dtype)
 
     def cost(self, s: jax.Array) -> jax.Array:
         """``1 - exp(-1/2 (s - r)^T Q (s - r))`` for one state."""
@@ -86,13 +97,25 @@ class LinearGaussianSystem:
             weight = 0.1 * jax.random.normal(key, (control_dim, self.state_dim))
             return LinearParams(weight, jnp.zeros((control_dim,), weight.dtype))
 
-        return Policy(init, lambda theta, s: theta.weight @ s + theta.bias)
+        def moments(theta, m, S):  # exact for an affine map
+            return Moments(theta.weight @ m + theta.bias, theta.weight @ S @ theta.weight.T, theta.weight.T)
+
+        return Policy(init, lambda theta, s: theta.weight @ s + theta.bias, moments=moments)
 
     def initial_state(self, key: jax.Array) -> jax.Array:
         return _array(self.init_mean) + _array(self.init_std) * jax.random.normal(key, (self.state_dim,))
 
     def problem(self, model_var_scale: float = 1.0, noise_var_scale: float = 1.0) -> Problem:
-        """The particle problem of this system (features = the state itself)."""
+        """The particle problem of this system (features = the state itself), with the forms
+        PILCO needs (moment matching is exact here)."""
+        from estimators.pilco import MomentForms
+
+        eye = np.eye(self.state_dim)
+        forms = MomentForms(
+            features=TrigLinearMap.make(np.zeros((0, self.state_dim)), eye),
+            cost=SaturatingCost(TrigLinearMap.make(np.zeros((0, self.state_dim)), eye, -np.asarray(self.target)),
+                                self.cost_weight),
+            init_mean=self.init_mean, init_cov=tuple(map(tuple, np.diag(np.square(self.init_std)).tolist())))
         return Problem(model=self, model_params=None, policy=self.policy(), cost=self.cost,
                        features=lambda s: s, initial_state=self.initial_state, horizon=self.horizon,
-                       model_var_scale=model_var_scale, noise_var_scale=noise_var_scale)
+                       model_var_scale=model_var_scale, noise_var_scale=noise_var_scale, moment_forms=forms)

@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 import jax
 import jax.numpy as jnp
 
+from tasks.forms import SaturatingCost, TrigLinearMap
 from tasks.policies import Policy
 
 def check_vector(name: str, value: jax.Array, size: int) -> None:
@@ -144,6 +145,21 @@ class Task:
     def gp_features(self, s: jax.Array) -> jax.Array:
         """What the GP sees of a modelled state (the control is appended by ``gp_inputs``)."""
         raise NotImplementedError
+
+    @property
+    def policy_feature_map(self) -> TrigLinearMap | None:
+        """``policy_features`` as a declarative form (for moment matching), or None."""
+        return None
+
+    @property
+    def gp_feature_map(self) -> TrigLinearMap | None:
+        """``gp_features`` as a declarative form (for moment matching), or None."""
+        return None
+
+    @property
+    def cost_form(self) -> SaturatingCost | None:
+        """``cost`` as a declarative form (for moment matching), or None."""
+        return None
 
     def gp_inputs(self, s: jax.Array, u: jax.Array) -> jax.Array:
         """GP input ``[gp_features(s), u]``."""

@@ -11,8 +11,10 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from tasks.base import Task, check_vector
+from tasks.forms import SaturatingCost, TrigLinearMap
 from tasks.policies import Policy, rbf_policy
 
 POLE_LENGTH = 0.5  # l (m), pivot at one end
@@ -68,20 +70,35 @@ class CartPole(Task):
         ) / (4 * l * (M + m) - 3 * m * l * c**2)
         return jnp.stack([xdot, xddot, thetaddot, thetadot])
 
-    def cost(self, s):
+    @property
+    def cost_form(self) -> SaturatingCost:
         """Angle cost ``1 - exp(-(x^2 + (theta - pi)^2))`` (raw angle) or the tip cost
-        ``1 - exp(-d^2 / (2 * 0.25^2))``, ``d^2 = (x + l sin th)^2 + l^2 (cos th + 1)^2``."""
-        check_vector("s (modelled state)", s, 4)
-        x, theta = s[0], s[3]
+        ``1 - exp(-d^2 / (2 * 0.25^2))``, ``d^2 = (x + l sin th)^2 + l^2 (cos th + 1)^2``; on
+        y = [x, xdot, thetadot, theta, sin theta, cos theta]."""
         if self.cost_type == "angle":
-            return 1.0 - jnp.exp(-(x**2 + (theta - ANGLE_TARGET) ** 2))
-        d2 = (x + POLE_LENGTH * jnp.sin(theta)) ** 2 + POLE_LENGTH**2 * (jnp.cos(theta) + 1.0) ** 2
-        return 1.0 - jnp.exp(-d2 / (2.0 * TIP_COST_WIDTH**2))
+            point = TrigLinearMap.make(np.zeros((0, 4)), [[1, 0, 0, 0], [0, 0, 0, 1]], [0.0, -ANGLE_TARGET])
+            return SaturatingCost(point, ((2.0, 0.0), (0.0, 2.0)))
+        point = TrigLinearMap.make(np.array([[0.0, 0, 0, 1]]), [[1, 0, 0, 0, POLE_LENGTH, 0],
+                                                                 [0, 0, 0, 0, 0, POLE_LENGTH]], [0.0, POLE_LENGTH])
+        width2 = TIP_COST_WIDTH**2
+        return SaturatingCost(point, ((1 / width2, 0.0), (0.0, 1 / width2)))
+
+    @property
+    def policy_feature_map(self) -> TrigLinearMap:
+        """``[x, xdot, thetadot, sin(theta), cos(theta)]``."""
+        return TrigLinearMap.select(4, angle_dims=(3,), keep=(0, 1, 2, 4, 5))
+
+    gp_feature_map = policy_feature_map
+
+    def cost(self, s):
+        """Per-step cost of a modelled state (see ``cost_form``)."""
+        check_vector("s (modelled state)", s, 4)
+        return self.cost_form(s)
 
     def policy_features(self, s):
         """``[x, xdot, thetadot, sin(theta), cos(theta)]``, (5,)."""
         check_vector("s (modelled state)", s, 4)
-        return jnp.stack([s[0], s[1], s[2], jnp.sin(s[3]), jnp.cos(s[3])])
+        return self.policy_feature_map(s)
 
     gp_features = policy_features
 

@@ -29,12 +29,15 @@ def _identity(theta):
 class Policy(NamedTuple):
     """``init(key) -> theta`` (a pytree); ``network(prepare(theta), features (F,)) -> u (U,)``.
 
-    ``prepare`` maps theta to the network's parameters (default: identity).
+    ``prepare`` maps theta to the network's parameters (default: identity). ``moments(net,
+    m (F,), S (F, F)) -> models.moment_matching.Moments`` of u for Gaussian features (for
+    PILCO), or None.
     """
 
     init: Callable[[jax.Array], object]
     network: Callable[[object, jax.Array], jax.Array]
     prepare: Callable[[object], object] = _identity
+    moments: Callable[[object, jax.Array, jax.Array], object] | None = None
 
     def apply(self, theta, f: jax.Array) -> jax.Array:
         """``u = network(prepare(theta), f)`` for one feature vector f (F,) -> (U,)."""
@@ -131,7 +134,12 @@ def rbf_policy(
     def network(net, f):
         return u_max_arr.astype(f.dtype) * saturate(rbf_preactivation(net, f))
 
-    return Policy(init, network, rbf_network)
+    def moments(net, m, S):
+        from models import moment_matching  # the policy module stays free of model imports
+
+        return saturated_moments(moment_matching.rbf_policy_moments(net, m, S), u_max_arr.astype(m.dtype))
+
+    return Policy(init, network, rbf_network, moments)
 
 
 def linear_policy(feature_dim: int, u_max: tuple[float, ...], init_scale: float = 1e-2) -> Policy:
@@ -146,4 +154,18 @@ def linear_policy(feature_dim: int, u_max: tuple[float, ...], init_scale: float 
     def network(theta, f):
         return u_max_arr.astype(f.dtype) * saturate(theta.weight @ f + theta.bias)
 
-    return Policy(init, network)
+    def moments(theta, m, S):
+        from models.moment_matching import Moments
+
+        linear = Moments(theta.weight @ m + theta.bias, theta.weight @ S @ theta.weight.T, theta.weight.T)
+        return saturated_moments(linear, u_max_arr.astype(m.dtype))
+
+    return Policy(init, network, moments=moments)
+
+
+def saturated_moments(pre, u_max: jax.Array):
+    """Moments of ``u_max * sat(a)`` from those of the pre-activation a (io chained: F x U)."""
+    from models.moment_matching import Moments, saturation_moments
+
+    u = saturation_moments(pre.mean, pre.cov, u_max)
+    return Moments(u.mean, u.cov, pre.io @ u.io)

@@ -1,0 +1,138 @@
+"""Success tables and learning curves from the learning CSV alone (``harness.learn``).
+
+    python -m harness.learn_report reports/learn_cartpole_angle_k1.csv
+
+Success: the final learned trial's evaluation (mean cost of ``eval_runs`` real runs) is below
+a threshold chosen from the pooled distribution of final evaluations of every method and
+repeat in the table: the cut that minimises the within-group variance of the two groups it
+makes (Otsu's rule; learning either swings the pole up or does not, so the final costs are
+bimodal and the cut falls in the gap). The threshold, the rule and the sorted final costs
+around it are printed with every table. Rates carry Wilson 95 % intervals.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pandas as pd
+
+Z95 = 1.96
+
+PAPER = {  # PIPPS, success rates over 100 repeats (see ../shared/specs/tasks.md)
+    ("cartpole", "angle", 0.01): dict(pilco=0.88, rp=0.69, rp_fs=0.24, gr=0.63, gr_fs=0.74, lr=0.57, tp=0.82,
+                                      **{"tp+sigma_n": 0.96}),
+    ("cartpole", "angle", 1.0): dict(pilco=0.79, rp=0.74, rp_fs=0.23, gr=0.89, gr_fs=0.71, lr=0.96, tp=0.99,
+                                     **{"tp-sigma_f": 0.93}),
+    ("cartpole", "angle", 4.0): dict(pilco=0.70, rp=0.58, rp_fs=0.08, gr=0.62, gr_fs=0.41, lr=0.94, tp=0.95),
+    ("cartpole", "angle", 9.0): dict(pilco=0.37, rp=0.44, rp_fs=0.04, gr=0.34, gr_fs=0.25, lr=0.86, tp=0.83),
+    ("cartpole", "angle", 16.0): dict(pilco=0.01, rp=0.11, rp_fs=0.00, gr=0.08, gr_fs=0.02, lr=0.45, tp=0.40),
+    ("cartpole", "tip", 0.01): dict(pilco=0.92, rp=0.44, rp_fs=0.20, gr=0.47, gr_fs=0.78, lr=0.36, tp=0.54),
+    ("cartpole", "tip", 1.0): dict(pilco=0.73, rp=0.15, rp_fs=0.08, gr=0.68, gr_fs=0.50, lr=0.28, tp=0.48),
+    ("unicycle", "default", 1.0): dict(pilco=0.91, rp=0.80, rp_fs=0.39, gr=0.96, gr_fs=0.63, lr=0.47, tp=0.94),
+}
+
+
+def otsu_threshold(values: np.ndarray) -> float:
+    """The cut between sorted values that minimises the summed within-group variance."""
+    v = np.sort(np.asarray(values, float))
+    if len(v) < 2 or v[0] == v[-1]:
+        return float(v[-1]) if len(v) else np.nan
+    costs = [np.var(v[:i]) * i + np.var(v[i:]) * (len(v) - i) for i in range(1, len(v))]
+    i = int(np.argmin(costs)) + 1
+    return float(0.5 * (v[i - 1] + v[i]))
+
+
+def wilson_interval(successes: int, n: int) -> tuple[float, float]:
+    """Wilson score 95 % interval of a binomial proportion."""
+    if n == 0:
+        return np.nan, np.nan
+    p = successes / n
+    centre = (p + Z95**2 / (2 * n)) / (1 + Z95**2 / n)
+    half = Z95 * np.sqrt(p * (1 - p) / n + Z95**2 / (4 * n**2)) / (1 + Z95**2 / n)
+    return centre - half, centre + half
+
+
+def final_evaluations(rows: pd.DataFrame) -> pd.DataFrame:
+    """Per experiment (task, cost, noise_k, method, repeat): the last learned trial's row."""
+    learned = rows[rows.learned.astype(bool)]
+    keys = ["task", "cost", "noise_k", "method", "repeat"]
+    return learned.sort_values("trial").groupby(keys, as_index=False).last()
+
+
+def success_table(rows: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
+    """Rows (task, cost, k), columns methods: 'rate [low, high] (paper p)'; and the
+    threshold per (task, cost)."""
+    final = final_evaluations(rows)
+    thresholds = {key: otsu_threshold(group.eval_mean) for key, group in final.groupby(["task", "cost"])}
+    cells = {}
+    for (task, cost, k, method), group in final.groupby(["task", "cost", "noise_k", "method"]):
+        wins = int((group.eval_mean < thresholds[(task, cost)]).sum())
+        low, high = wilson_interval(wins, len(group))
+        paper = PAPER.get((task, cost, float(k)), {}).get(method)
+        cells.setdefault((task, cost, k), {})[method] = (
+            f"{wins / len(group):.2f} [{low:.2f}, {high:.2f}] n={len(group)}"
+            + (f" (paper {paper:.2f})" if paper is not None else ""))
+    table = pd.DataFrame.from_dict(cells, orient="index")
+    table.index = pd.MultiIndex.from_tuples(table.index, names=["task", "cost", "k"])
+    return table, thresholds
+
+
+def write(rows: pd.DataFrame, stem: str, command: str) -> None:
+    """``stem.md`` (thresholds, success table, per-method final costs) and ``stem.png``
+    (learning curves: mean evaluation cost against trial, 95 % bands)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    table, thresholds = success_table(rows)
+    final = final_evaluations(rows)
+    learned = rows[rows.learned.astype(bool)]
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for index, (method, group) in enumerate(learned.groupby("method")):
+        stats = group.groupby("trial").eval_mean.agg(["mean", "std", "count"])
+        half = Z95 * stats["std"].fillna(0) / np.sqrt(stats["count"])
+        ax.plot(stats.index + 1, stats["mean"], marker="o", color=f"C{index}", label=method)
+        ax.fill_between(stats.index + 1, stats["mean"] - half, stats["mean"] + half, color=f"C{index}", alpha=0.2)
+    for (task, cost), threshold in thresholds.items():
+        ax.axhline(threshold, color="k", linestyle="--", linewidth=0.8, label=f"success threshold {threshold:.2f}")
+    ax.set_xlabel("trial")
+    ax.set_ylabel("evaluation cost (mean of real runs)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(stem + ".png", dpi=110)
+    plt.close(fig)
+
+    lines = [f"# Learning: {os.path.basename(stem)}", "", f"Command: `{command}`", ""]
+    for (task, cost), threshold in thresholds.items():
+        values = np.sort(final[(final.task == task) & (final.cost == cost)].eval_mean.to_numpy())
+        low, high = values[values < threshold], values[values >= threshold]
+        spread = np.sqrt((np.sum((low - low.mean()) ** 2) + np.sum((high - high.mean()) ** 2)) / len(values))
+        separation = (high.mean() - low.mean()) / spread if len(low) and len(high) and spread > 0 else np.nan
+        lines.append(f"- Success threshold for {task}, {cost} cost: final evaluation cost < {threshold:.3f} (Otsu's "
+                     f"cut of the {len(values)} pooled final costs; the two groups' means differ by {separation:.1f} "
+                     "within-group sd: a cut in a real gap when this is large, say > 3; otherwise the costs are not "
+                     f"bimodal and the rates mean little). Sorted: {', '.join(f'{v:.2f}' for v in values)}.")
+    lines += ["", "Success rate [Wilson 95 % interval] n = repeats (the paper's rate, 100 repeats):", "",
+              table.reset_index().to_markdown(index=False), "", f"![learning curves]({os.path.basename(stem)}.png)", "",
+              "Final evaluation cost per method (mean, sd):", "",
+              final.groupby("method").eval_mean.agg(["mean", "std", "count"]).reset_index().to_markdown(
+                  index=False, floatfmt=".3f"), ""]
+    with open(stem + ".md", "w") as f:
+        f.write("\n".join(lines))
+
+
+def main(argv=None) -> None:
+    paths = argv if argv is not None else sys.argv[1:]
+    if len(paths) != 1 or not paths[0].endswith(".csv"):
+        raise SystemExit("usage: python -m harness.learn_report PATH.csv")
+    stem = paths[0][:-4]
+    write(pd.read_csv(paths[0]), stem, f"python -m harness.learn_report {paths[0]}")
+    print(f"wrote {stem}.{{md,png}}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
