@@ -56,3 +56,13 @@ def test_success_statistics():
     low, high = learn_report.wilson_interval(8, 10)
     assert low == pytest.approx(0.4902, abs=1e-4) and high == pytest.approx(0.9433, abs=1e-4)  # textbook values
     assert learn_report.wilson_interval(0, 10)[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_sweep_runs_the_chosen_cells(tmp_path):
+    from harness import sweep
+
+    sweep.main(["--cells", "1", "--repeats", "1", "--methods", "tp", "--workers", "1", "--out", str(tmp_path),
+                "--learn-args", " ".join(TINY[2:])])  # cell 1: the cart-pole, angle cost, k = 1
+    assert (tmp_path / "learn_cartpole_angle_k1.csv").exists()
+    with pytest.raises(ValueError, match="cells must be"):
+        sweep.main(["--cells", "42"])
