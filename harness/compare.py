@@ -55,8 +55,7 @@ class Args(scenario_lib.ExperimentArgs):
     def __post_init__(self):
         super().__post_init__()
         for model in str_list(self.models) + [self.reference_model]:
-            if model not in scenario_lib.MODELS:
-                raise ValueError(f"unknown model {model!r}; valid models: {list(scenario_lib.MODELS)}")
+            scenario_lib.check_model(model)
         if self.reference_model == "gp":
             raise ValueError("the reference must be a true-dynamics model (jax or mjx), not gp")
         for name in str_list(self.estimators) + [self.reference_estimator]:

@@ -50,6 +50,7 @@ Z95 = 1.96
 class Args(scenario_lib.ExperimentArgs):
     """The curse-of-chaos value landscape along a random direction in policy space."""
 
+    model: str = "gp"
     estimators: str = "rp_fs,lr,tp"
     particles: int = 1000
     delta_max: float = 1.5
@@ -63,6 +64,7 @@ class Args(scenario_lib.ExperimentArgs):
 
     def __post_init__(self):
         super().__post_init__()
+        scenario_lib.check_model(self.model)
         for name in str_list(self.estimators):
             estimators.make(name)  # fails with the list of estimators
         names = tasks.make(self.task).model_state_names
@@ -152,7 +154,7 @@ def run(args: Args) -> tuple[pd.DataFrame, dict]:
     """Measure every missing delta (appending to the CSV), then the slices; returns this run's
     rows and the slices {delta: value_slice(...)}."""
     table = ResultTable(args.stem + ".csv", KEY_COLUMNS)
-    where = scenario_lib.setting(args)
+    where = scenario_lib.setting(args, args.model)
     key = jax.random.fold_in(jax.random.key(args.seed), 3)
     jitted = {name: jax.jit(estimators.make(name), static_argnums=3) for name in str_list(args.estimators)}
     jitted["returns"] = jax.jit(particle_returns, static_argnums=3)

@@ -113,7 +113,6 @@ class ExperimentArgs:
     """The options every gradient experiment shares (their CLIs extend this dataclass)."""
 
     task: str = "cartpole"
-    model: str = "gp"
     seed: int = 0
     out: str = "reports"
     x64: bool = True
@@ -122,8 +121,6 @@ class ExperimentArgs:
     scenario_particles: int = 100
 
     def __post_init__(self):
-        if self.model not in MODELS:
-            raise ValueError(f"unknown model {self.model!r}; valid models: {list(MODELS)}")
         tasks.make(self.task)  # fails with the list of tasks
 
     @property
@@ -170,9 +167,14 @@ def model_problem(task_name: str, model: str, scenario: Scenario) -> Problem:
     return task_problem(task, SimulatorModel(task, backend=model))
 
 
-def setting(args: ExperimentArgs, model: str | None = None) -> Setting:
-    """The Setting of ``args`` (under ``model`` if given, else ``args.model``), building or
-    loading the cached scenario under ``args.out``."""
+def check_model(model: str) -> None:
+    if model not in MODELS:
+        raise ValueError(f"unknown model {model!r}; valid models: {list(MODELS)}")
+
+
+def setting(args: ExperimentArgs, model: str) -> Setting:
+    """The Setting of ``args`` under ``model``, building or loading the cached scenario under
+    ``args.out``."""
     scn = load_or_build(args.scenario, os.path.join(args.out, ".cache"))
     direction = unit_direction(scn.theta, jax.random.fold_in(jax.random.key(args.seed), 1))
-    return Setting(model_problem(args.task, model or args.model, scn), scn.theta, direction, scn)
+    return Setting(model_problem(args.task, model, scn), scn.theta, direction, scn)

@@ -36,6 +36,7 @@ KEY_COLUMNS = ["task", "model", "estimator", "particles", "delta_theta", "repeat
 class Args(scenario_lib.ExperimentArgs):
     """Gradient variance of each estimator against the particle count."""
 
+    model: str = "gp"
     estimators: str = "rp,lr,biw_lr,tp"
     particles: str = "10,30,100,300"
     repeats: int = 30
@@ -44,6 +45,7 @@ class Args(scenario_lib.ExperimentArgs):
 
     def __post_init__(self):
         super().__post_init__()
+        scenario_lib.check_model(self.model)
         for name in str_list(self.estimators):
             estimators.make(name)  # fails with the list of estimators
         if self.repeats < 2:
@@ -119,7 +121,7 @@ def cell_statistics(rep: Repeats) -> dict:
 def run(args: Args) -> pd.DataFrame:
     """Measure every missing cell (appending to the CSV) and return this run's table."""
     table = ResultTable(os.path.join(args.out, f"variance_{args.task}_{args.model}.csv"), KEY_COLUMNS)
-    where = scenario_lib.setting(args)
+    where = scenario_lib.setting(args, args.model)
     key = jax.random.fold_in(jax.random.key(args.seed), 2)
     cells = [(d, name, p) for d in float_list(args.delta_theta) for name in str_list(args.estimators)
              for p in args.particle_counts]
