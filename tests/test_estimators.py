@@ -189,15 +189,16 @@ def test_biw_baseline_is_finite_when_particles_do_not_overlap():
 
 @pytest.mark.parametrize("backend", ["jax", pytest.param("mjx", marks=pytest.mark.slow)])
 def test_estimators_run_on_the_true_dynamics(backend):
-    """Every estimator works with the simulator model (the task's dynamics as a model):
-    finite gradients, no NaN, and TP's weight in [0, 1]."""
+    """Every particle estimator works with the simulator model (the task's dynamics as a
+    model): finite gradients, no NaN, and TP's weight in [0, 1]. (PILCO needs moment
+    propagation, which only the GP has: tests/test_pilco.py.)"""
     import tasks
     from models.simulator import SimulatorModel
 
     task = tasks.make("cartpole", horizon=5)
     problem = estimators.task_problem(task, SimulatorModel(task, backend=backend))
     theta = problem.policy.init(jax.random.key(0))
-    for name in sorted(estimators.REGISTRY):
+    for name in sorted(set(estimators.REGISTRY) - {"pilco"}):
         e = jax.jit(estimators.make(name), static_argnums=3)(problem, theta, jax.random.key(1), 8)
         assert int(e.aux["nan_count"]) == 0, name
         assert np.all(np.isfinite(flat(e.grad, 1))), name
