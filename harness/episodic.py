@@ -12,9 +12,12 @@ import functools
 from typing import Any, Callable, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import optax
 
+import estimators
 from estimators.base import Problem
+from estimators.pilco import pilco_objective
 from harness.optim import LEARNING_RATE, MOMENTUM, pipps_sgd
 from models import gp
 from tasks.base import Task
@@ -51,6 +54,48 @@ def optimise_policy(problem: Problem, theta, key: jax.Array, *, estimator, num_s
     keys = jax.random.split(key, num_steps)
     (theta, _), values = jax.lax.scan(one_step, (theta, optimiser.init(theta)), keys)
     return theta, values
+
+
+@functools.lru_cache(maxsize=None)
+def pilco_optimiser(num_steps: int):
+    """``optimise(problem, theta, key) -> theta``: L-BFGS with a zoom line search on PILCO's
+    deterministic J; the best finite iterate is kept (a NaN step cannot lose progress)."""
+    solver = optax.lbfgs()
+
+    @jax.jit
+    def optimise(problem, theta, key):
+        del key
+        objective = lambda th: pilco_objective(problem, th)[0]  # noqa: E731
+        value_and_grad = optax.value_and_grad_from_state(objective)
+
+        def step(carry, _):
+            theta, state, best, best_value = carry
+            value, grad = value_and_grad(theta, state=state)
+            updates, state = solver.update(grad, state, theta, value=value, grad=grad, value_fn=objective)
+            better = jnp.isfinite(value) & (value < best_value)
+            best = jax.tree.map(lambda b, t: jnp.where(better, t, b), best, theta)
+            return (optax.apply_updates(theta, updates), state, best, jnp.where(better, value, best_value)), value
+
+        init = (theta, solver.init(theta), theta, jnp.asarray(jnp.inf, jax.tree.leaves(theta)[0].dtype))
+        (last, _, best, best_value), _ = jax.lax.scan(step, init, None, length=num_steps)
+        last_value = objective(last)
+        return jax.tree.map(lambda b, t: jnp.where(last_value < best_value, t, b), best, last)
+
+    return optimise
+
+
+def policy_optimiser(estimator_name: str, num_steps: int, num_particles: int):
+    """``optimise(problem, theta, key) -> theta``: PILCO's L-BFGS for "pilco", else
+    ``num_steps`` steps of the paper's optimiser with that estimator and ``num_particles``."""
+    if estimator_name == "pilco":
+        return pilco_optimiser(num_steps)
+    estimator = estimators.make(estimator_name)
+
+    def optimise(problem, theta, key):
+        return optimise_policy(problem, theta, key, estimator=estimator, num_steps=num_steps,
+                               num_particles=num_particles)[0]
+
+    return optimise
 
 
 def evaluate_policy(task: Task, policy, theta, key: jax.Array, num_runs: int) -> jax.Array:

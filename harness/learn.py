@@ -18,7 +18,6 @@ regenerates every table and figure from the CSV alone.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import os
 import sys
 import time
@@ -26,14 +25,12 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 import estimators
 import tasks
 from estimators.base import task_problem
-from estimators.pilco import pilco_objective
 from harness.cli import parse, str_list
-from harness.episodic import evaluate_policy, learning_run, optimise_policy
+from harness.episodic import evaluate_policy, learning_run, policy_optimiser
 from harness.records import ResultTable
 from models import gp
 
@@ -116,51 +113,12 @@ class Args:
         return os.path.join(self.out, f"learn_{self.task}_{cost}_k{self.noise_k:g}")
 
 
-@functools.lru_cache(maxsize=None)
-def pilco_optimiser(num_steps: int):
-    """``optimise(problem, theta, key) -> theta``: L-BFGS with a zoom line search on PILCO's
-    deterministic J; the best finite iterate is kept (a NaN step cannot lose progress)."""
-    solver = optax.lbfgs()
-
-    @jax.jit
-    def optimise(problem, theta, key):
-        del key
-        objective = lambda th: pilco_objective(problem, th)[0]  # noqa: E731
-        value_and_grad = optax.value_and_grad_from_state(objective)
-
-        def step(carry, _):
-            theta, state, best, best_value = carry
-            value, grad = value_and_grad(theta, state=state)
-            updates, state = solver.update(grad, state, theta, value=value, grad=grad, value_fn=objective)
-            better = jnp.isfinite(value) & (value < best_value)
-            best = jax.tree.map(lambda b, t: jnp.where(better, t, b), best, theta)
-            return (optax.apply_updates(theta, updates), state, best, jnp.where(better, value, best_value)), value
-
-        init = (theta, solver.init(theta), theta, jnp.asarray(jnp.inf, jax.tree.leaves(theta)[0].dtype))
-        (last, _, best, best_value), _ = jax.lax.scan(step, init, None, length=num_steps)
-        last_value = objective(last)
-        return jax.tree.map(lambda b, t: jnp.where(last_value < best_value, t, b), best, last)
-
-    return optimise
-
-
-def particle_optimiser(estimator, num_steps: int, num_particles: int):
-    """``optimise(problem, theta, key) -> theta`` with the paper's optimiser."""
-    def optimise(problem, theta, key):
-        return optimise_policy(problem, theta, key, estimator=estimator, num_steps=num_steps,
-                               num_particles=num_particles)[0]
-
-    return optimise
-
-
 def run_experiment(args: Args, method: str, repeat: int) -> list[dict]:
     """One learning run; returns a row per trial (progress on stderr)."""
     task, settings = args.make_task(), args.settings
     name, overrides = METHODS[method]
-    if name == "pilco":
-        optimise = pilco_optimiser(settings["pilco_steps"])
-    else:
-        optimise = particle_optimiser(estimators.make(name), settings["optimiser_steps"], settings["particles"])
+    steps = settings["pilco_steps"] if name == "pilco" else settings["optimiser_steps"]
+    optimise = policy_optimiser(name, steps, settings["particles"])
     problem = task_problem(task, gp.GPModel(task), **overrides)
     key = jax.random.key(args.seed + repeat)
     evaluate = jax.jit(lambda theta, k: evaluate_policy(task, problem.policy, theta, k, settings["eval_runs"]))

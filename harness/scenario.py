@@ -29,7 +29,7 @@ import numpy as np
 import estimators
 import tasks
 from estimators.base import Problem, task_problem
-from harness.episodic import learning_run, optimise_policy
+from harness.episodic import learning_run, policy_optimiser
 from models import gp
 from models.simulator import SimulatorModel
 
@@ -49,10 +49,11 @@ class ScenarioArgs:
     gp_steps: int = 100
 
     def describe(self) -> str:
+        how = (f"PILCO ({self.optimiser_steps} L-BFGS steps)" if self.estimator == "pilco" else
+               f"{self.estimator} ({self.particles} particles, {self.optimiser_steps} steps of the paper's optimiser)")
         return (f"task {self.task}, seed {self.seed}: the preset's random trial(s), then "
                 f"{self.learned_trials} learned trial(s), each optimising the policy on the GP "
-                f"with {self.estimator} ({self.particles} particles, {self.optimiser_steps} steps of "
-                f"the paper's optimiser); GP refitted to all data ({self.gp_steps} L-BFGS steps)")
+                f"with {how}; GP refitted to all data ({self.gp_steps} L-BFGS steps)")
 
 
 class Scenario(NamedTuple):
@@ -68,12 +69,8 @@ class Scenario(NamedTuple):
 def build(args: ScenarioArgs) -> Scenario:
     """Run the scenario's trials (progress on stderr)."""
     task = tasks.make(args.task)
-    estimator = estimators.make(args.estimator)
+    optimise = policy_optimiser(args.estimator, args.optimiser_steps, args.particles)
     returns = []
-
-    def optimise(problem, theta, key):
-        return optimise_policy(problem, theta, key, estimator=estimator, num_steps=args.optimiser_steps,
-                               num_particles=args.particles)[0]
 
     def on_trial(record, data):
         returns.append(float(record.episode.total_cost))
@@ -119,14 +116,17 @@ class ExperimentArgs:
     scenario_trials: int = 2
     scenario_steps: int = 200
     scenario_particles: int = 100
+    scenario_estimator: str = "tp"
 
     def __post_init__(self):
         tasks.make(self.task)  # fails with the list of tasks
+        estimators.make(self.scenario_estimator)  # fails with the list of estimators
 
     @property
     def scenario(self) -> ScenarioArgs:
         return ScenarioArgs(task=self.task, seed=self.seed, learned_trials=self.scenario_trials,
-                            optimiser_steps=self.scenario_steps, particles=self.scenario_particles)
+                            optimiser_steps=self.scenario_steps, particles=self.scenario_particles,
+                            estimator=self.scenario_estimator)
 
     @property
     def scenario_name(self) -> str:
@@ -135,7 +135,7 @@ class ExperimentArgs:
 
     def scenario_flags(self) -> str:
         return (f"--scenario-trials {self.scenario_trials} --scenario-steps {self.scenario_steps} "
-                f"--scenario-particles {self.scenario_particles}")
+                f"--scenario-particles {self.scenario_particles} --scenario-estimator {self.scenario_estimator}")
 
 
 class Setting(NamedTuple):

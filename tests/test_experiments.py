@@ -1,12 +1,14 @@
-"""The experiments end to end at a tiny size: the variance experiment (with its resume and
-argument checks) and the benchmark."""
+"""The gradient experiments end to end at a tiny size (variance, landscape, compare, bench;
+resume and argument checks), the scenario, and the statistics they report."""
 
 import os
 
+import jax
 import numpy as np
 import pandas as pd
 import pytest
 
+import tasks
 from harness import variance
 
 TINY = ["--particles", "5,8", "--repeats", "3", "--estimators", "rp,biw_lr,tp", "--scenario-trials", "1",
@@ -108,3 +110,14 @@ def test_compare_runs_end_to_end(tmp_path):
     assert "cosine gp" in (tmp_path / "compare_cartpole.md").read_text()
     with pytest.raises(ValueError, match="reference must be a true-dynamics model"):
         compare.main(["--reference-model", "gp"])
+
+
+def test_scenario_can_be_learned_with_pilco():
+    from harness import scenario
+
+    args = scenario.ScenarioArgs(learned_trials=1, optimiser_steps=2, estimator="pilco", gp_steps=3)
+    built = scenario.build(args)
+    assert len(built.returns) == 2 and np.isfinite(built.returns).all()
+    assert "PILCO (2 L-BFGS steps)" in args.describe()
+    start = tasks.make("cartpole").default_policy().init(jax.random.fold_in(jax.random.key(0), 10_000))
+    assert not np.allclose(np.asarray(built.theta.targets), np.asarray(start.targets))  # the policy was optimised
