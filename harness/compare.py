@@ -58,8 +58,7 @@ class Args(scenario_lib.ExperimentArgs):
             scenario_lib.check_model(model)
         if self.reference_model == "gp":
             raise ValueError("the reference must be a true-dynamics model (jax or mjx), not gp")
-        for name in str_list(self.estimators) + [self.reference_estimator]:
-            estimators.make(name)  # fails with the list of estimators
+        scenario_lib.check_estimators(str_list(self.estimators) + [self.reference_estimator])
         if self.repeats < 2 or self.reference_repeats < 2:
             raise ValueError("repeats and reference_repeats must be >= 2")
 
@@ -108,7 +107,8 @@ def run(args: Args) -> tuple[pd.DataFrame, float]:
     standard error."""
     table = ResultTable(os.path.join(args.out, f"compare_{args.task}.csv"), KEY_COLUMNS)
     seed_key = jax.random.key(args.seed)
-    theta0 = scenario_lib.setting(args, "jax").theta0
+    where = {model: scenario_lib.setting(args, model) for model in str_list(args.models)}
+    theta0 = next(iter(where.values())).theta0
     reference, reference_rse = reference_gradient(args, theta0, jax.random.fold_in(seed_key, 4))
     cells = [(m, e, p) for m in str_list(args.models) for e in str_list(args.estimators)
              for p in int_list(args.particles)]
@@ -117,8 +117,7 @@ def run(args: Args) -> tuple[pd.DataFrame, float]:
                        seed=args.seed, scenario=args.scenario_name, reference=args.reference_name)
         if table.has(row_key):
             continue
-        where = scenario_lib.setting(args, model)
-        rep = repeated_estimates(estimators.make(name), where.problem, theta0, num_particles, args.repeats,
+        rep = repeated_estimates(estimators.make(name), where[model].problem, theta0, num_particles, args.repeats,
                                  jax.random.fold_in(seed_key, 2))
         stats = {**cell_statistics(rep), **alignment(rep.grads, reference)}
         table.append({**row_key, **stats})

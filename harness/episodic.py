@@ -98,8 +98,10 @@ def policy_optimiser(estimator_name: str, num_steps: int, num_particles: int):
     return optimise
 
 
+@functools.partial(jax.jit, static_argnames=("task", "policy", "num_runs"))
 def evaluate_policy(task: Task, policy, theta, key: jax.Array, num_runs: int) -> jax.Array:
-    """Returns (num_runs,) of the policy on the real system (evaluation only)."""
+    """Returns (num_runs,) of the policy on the real system (evaluation only); jitted once
+    per task, policy and number of runs."""
     episodes = jax.vmap(lambda k: run_episode(task, k, policy, theta))(jax.random.split(key, num_runs))
     return episodes.total_cost
 

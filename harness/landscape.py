@@ -65,8 +65,7 @@ class Args(scenario_lib.ExperimentArgs):
     def __post_init__(self):
         super().__post_init__()
         scenario_lib.check_model(self.model)
-        for name in str_list(self.estimators):
-            estimators.make(name)  # fails with the list of estimators
+        scenario_lib.check_estimators(str_list(self.estimators))
         names = tasks.make(self.task).model_state_names
         dims = str_list(self.slice_dims)
         if len(dims) != 2 or not set(dims) <= set(names):

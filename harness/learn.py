@@ -23,10 +23,8 @@ import sys
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-import estimators
 import tasks
 from estimators.base import task_problem
 from harness.cli import parse, str_list
@@ -55,6 +53,8 @@ PRESETS = {
     "quick": dict(learned_trials=5, optimiser_steps=150, particles=100, eval_runs=10, pilco_steps=40, gp_steps=60),
     "paper": dict(learned_trials=0, optimiser_steps=600, particles=300, eval_runs=30, pilco_steps=150, gp_steps=100),
 }
+DEFAULT_METHODS = "pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n"
+"""The paper's columns."""
 KEY_COLUMNS = ["task", "cost", "noise_k", "method", "repeat", "seed", "settings"]
 
 
@@ -65,7 +65,7 @@ class Args:
     task: str = "cartpole"
     cost: str = ""
     noise_k: float = 1.0
-    methods: str = "pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n"
+    methods: str = DEFAULT_METHODS
     repeats: int = 10
     preset: str = "quick"
     seed: int = 0
@@ -121,12 +121,13 @@ def run_experiment(args: Args, method: str, repeat: int) -> list[dict]:
     optimise = policy_optimiser(name, steps, settings["particles"])
     problem = task_problem(task, gp.GPModel(task), **overrides)
     key = jax.random.key(args.seed + repeat)
-    evaluate = jax.jit(lambda theta, k: evaluate_policy(task, problem.policy, theta, k, settings["eval_runs"]))
     rows, start = [], time.perf_counter()
 
     def on_trial(record, data):
         if record.learned:
-            scores = np.asarray(evaluate(record.theta, jax.random.fold_in(key, 40_000 + record.trial)))
+            scores = np.asarray(evaluate_policy(task, problem.policy, record.theta,
+                                                jax.random.fold_in(key, 40_000 + record.trial),
+                                                num_runs=settings["eval_runs"]))
             eval_mean, eval_std = float(scores.mean()), float(scores.std(ddof=1)) if len(scores) > 1 else 0.0
         else:
             eval_mean = eval_std = np.nan

@@ -120,7 +120,7 @@ class ExperimentArgs:
 
     def __post_init__(self):
         tasks.make(self.task)  # fails with the list of tasks
-        estimators.make(self.scenario_estimator)  # fails with the list of estimators
+        check_estimators([self.scenario_estimator])
 
     @property
     def scenario(self) -> ScenarioArgs:
@@ -165,6 +165,11 @@ def model_problem(task_name: str, model: str, scenario: Scenario) -> Problem:
     if model == "gp":
         return task_problem(task, gp.GPModel(task), scenario.posterior)
     return task_problem(task, SimulatorModel(task, backend=model))
+
+
+def check_estimators(names: list[str]) -> None:
+    for name in names:
+        estimators.make(name)  # fails with the list of estimators
 
 
 def check_model(model: str) -> None:

@@ -21,6 +21,7 @@ import os
 import sys
 
 from harness.cli import parse
+from harness.learn import DEFAULT_METHODS
 
 CELLS = [("cartpole", "angle", k) for k in (0.01, 1.0, 4.0, 9.0, 16.0)] + [
     ("cartpole", "tip", k) for k in (0.01, 1.0)] + [("unicycle", "", 1.0)]
@@ -36,7 +37,7 @@ class Args:
 
     repeats: int = 10
     preset: str = "quick"
-    methods: str = "pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n"
+    methods: str = DEFAULT_METHODS
     cells: str = "all"
     workers: int = 0
     engine: str = "local"
