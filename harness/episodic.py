@@ -13,6 +13,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 import estimators
@@ -118,24 +119,45 @@ class TrialRecord(NamedTuple):
 
 def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
                  optimise: Callable[[Problem, Any, jax.Array], Any], gp_steps: int,
-                 on_trial: Callable[[TrialRecord, gp.GPData], None] = lambda record, data: None):
+                 on_trial: Callable[[TrialRecord, gp.GPData], None] = lambda record, data: None,
+                 batched: bool = False, trim_model: bool = False):
     """The paper's episodic loop: the task's random trials, then ``num_learned`` times: fit the
     GP to all data (``gp_steps`` L-BFGS steps), ``theta = optimise(problem with the GP, theta,
     key)``, one real trial, add its data. Keys: random trial r ``fold_in(key, r)``, theta0
     ``fold_in(key, 10_000)``, optimisation and trial t ``fold_in(key, 20_000 + t)`` and
     ``fold_in(key, 30_000 + t)``. ``on_trial`` sees each trial as it ends. Returns
-    (theta, data)."""
+    (theta, data).
+
+    ``batched``: ``key`` is (B,) seeds and every piece (GP fit, optimisation, trial) is vmapped
+    over them; records, theta and data then carry a leading axis B. A seed's run is the same
+    computation either way, but batching may change round-off, which the closed loop's chaos
+    can amplify: compare statistics, not digits, across batch sizes.
+
+    ``trim_model``: optimise on the posterior cut to the rows held, rounded up to whole
+    episodes (``gp.truncate``): prediction costs O(rows^2) instead of O(capacity^2), for one
+    compilation of the optimiser per distinct size; worth it when the optimisation is long.
+    """
+    over_seeds = jax.vmap if batched else (lambda f: f)
+    seeds_fold_in = jax.vmap(jax.random.fold_in, in_axes=(0, None)) if batched else jax.random.fold_in
+    num_seeds = key.shape if batched else ()
     data = problem.model.empty_data(data_capacity(task, task.num_random_trials + num_learned))
+    data = jax.tree.map(lambda x: jnp.broadcast_to(x, num_seeds + x.shape), data)
+    add = over_seeds(functools.partial(add_episode, task))
     for trial in range(task.num_random_trials):
-        episode = run_episode(task, jax.random.fold_in(key, trial))
-        data = add_episode(task, data, episode)
+        episode = over_seeds(functools.partial(run_episode, task))(seeds_fold_in(key, trial))
+        data = add(data, episode)
         on_trial(TrialRecord(trial, False, episode, None), data)
-    theta = problem.policy.init(jax.random.fold_in(key, 10_000))
+    theta = over_seeds(problem.policy.init)(seeds_fold_in(key, 10_000))
+    fit = over_seeds(lambda d: gp.posterior(gp.train(d, num_steps=gp_steps).log_hyp, d))
+    policy_episode = over_seeds(lambda k, th: run_episode(task, k, problem.policy, th))
     for trial in range(num_learned):
-        posterior = gp.fit(data, num_steps=gp_steps)
+        posterior = gp.check_posterior(fit(data))
+        if trim_model:
+            whole_episodes = -(-int(np.max(np.asarray(data.num_valid))) // task.horizon) * task.horizon
+            posterior = gp.truncate(posterior, whole_episodes)
         problem = dataclasses.replace(problem, model_params=posterior)
-        theta = optimise(problem, theta, jax.random.fold_in(key, 20_000 + trial))
-        episode = run_episode(task, jax.random.fold_in(key, 30_000 + trial), problem.policy, theta)
-        data = add_episode(task, data, episode)
+        theta = over_seeds(optimise)(problem, theta, seeds_fold_in(key, 20_000 + trial))
+        episode = policy_episode(seeds_fold_in(key, 30_000 + trial), theta)
+        data = add(data, episode)
         on_trial(TrialRecord(task.num_random_trials + trial, True, episode, theta), data)
     return theta, data

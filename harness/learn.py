@@ -23,6 +23,7 @@ import sys
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import tasks
@@ -50,9 +51,13 @@ variances, not the estimator."""
 PRESETS = {
     # learned trials (0: the task preset's), optimiser steps, particles, evaluation runs,
     # PILCO's L-BFGS steps, GP training steps
-    "quick": dict(learned_trials=5, optimiser_steps=150, particles=100, eval_runs=10, pilco_steps=40, gp_steps=60),
+    # quick: the paper's optimiser budget per trial (600 steps: its step size assumes them) on
+    # fewer trials and particles. 150 steps were tried first: they move each parameter by at
+    # most 150 * 5e-4 / (1 - 0.9) = 0.75 per trial, and TP's policies stayed where they began.
+    "quick": dict(learned_trials=5, optimiser_steps=600, particles=50, eval_runs=10, pilco_steps=40, gp_steps=60),
     "paper": dict(learned_trials=0, optimiser_steps=600, particles=300, eval_runs=30, pilco_steps=150, gp_steps=100),
 }
+PARTICLE_ONLY = ("optimiser_steps", "particles")
 DEFAULT_METHODS = "pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n"
 """The paper's columns."""
 KEY_COLUMNS = ["task", "cost", "noise_k", "method", "repeat", "seed", "settings"]
@@ -77,6 +82,7 @@ class Args:
     eval_runs: int = -1
     pilco_steps: int = -1
     gp_steps: int = -1
+    batch: int = 10
 
     def __post_init__(self):
         if self.preset not in PRESETS:
@@ -85,8 +91,8 @@ class Args:
         if unknown:
             raise ValueError(f"unknown methods {unknown}; valid methods: {list(METHODS)}")
         self.make_task()  # fails with the valid tasks and options
-        if self.repeats < 1:
-            raise ValueError("repeats must be >= 1")
+        if self.repeats < 1 or self.batch < 1:
+            raise ValueError("repeats and batch must be >= 1")
 
     def make_task(self):
         options = {"noise_k": self.noise_k} | ({"cost": self.cost} if self.cost else {})
@@ -102,9 +108,11 @@ class Args:
             chosen["learned_trials"] = self.make_task().num_learned_trials
         return chosen
 
-    @property
-    def settings_name(self) -> str:
-        return "-".join(f"{key}{value}" for key, value in self.settings.items())
+    def settings_name(self, method: str) -> str:
+        """The settings that ``method`` uses, as a CSV key: PILCO ignores the particle
+        optimiser's steps and particles; the particle methods ignore PILCO's steps."""
+        unused = PARTICLE_ONLY if METHODS[method][0] == "pilco" else ("pilco_steps",)
+        return "-".join(f"{key}{value}" for key, value in self.settings.items() if key not in unused)
 
     @property
     def stem(self) -> str:
@@ -113,51 +121,65 @@ class Args:
         return os.path.join(self.out, f"learn_{self.task}_{cost}_k{self.noise_k:g}")
 
 
-def run_experiment(args: Args, method: str, repeat: int) -> list[dict]:
-    """One learning run; returns a row per trial (progress on stderr)."""
+def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
+    """One learning run per repeat, all vmapped together (``learning_run(batched=True)``);
+    returns a row per repeat and trial (progress on stderr)."""
     task, settings = args.make_task(), args.settings
     name, overrides = METHODS[method]
     steps = settings["pilco_steps"] if name == "pilco" else settings["optimiser_steps"]
     optimise = policy_optimiser(name, steps, settings["particles"])
     problem = task_problem(task, gp.GPModel(task), **overrides)
-    key = jax.random.key(args.seed + repeat)
+    keys = jnp.stack([jax.random.key(args.seed + r) for r in repeats])
+    evaluate = jax.vmap(lambda th, k: evaluate_policy(task, problem.policy, th, k, num_runs=settings["eval_runs"]))
+    num_trials = task.num_random_trials + settings["learned_trials"]
     rows, start = [], time.perf_counter()
 
     def on_trial(record, data):
         if record.learned:
-            scores = np.asarray(evaluate_policy(task, problem.policy, record.theta,
-                                                jax.random.fold_in(key, 40_000 + record.trial),
-                                                num_runs=settings["eval_runs"]))
-            eval_mean, eval_std = float(scores.mean()), float(scores.std(ddof=1)) if len(scores) > 1 else 0.0
+            eval_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, 40_000 + record.trial)
+            scores = np.asarray(evaluate(record.theta, eval_keys))  # (repeats, eval_runs)
         else:
-            eval_mean = eval_std = np.nan
-        rows.append(dict(trial=record.trial, learned=record.learned, trial_return=float(record.episode.total_cost),
-                         eval_mean=eval_mean, eval_std=eval_std, data_points=int(data.num_valid),
-                         seconds=time.perf_counter() - start))
-        print(f"  {method} repeat {repeat}: trial {record.trial + 1}/{task.num_random_trials + settings['learned_trials']}"
-              f" return {rows[-1]['trial_return']:.2f}, evaluation {eval_mean:.2f} ({rows[-1]['seconds']:.0f} s)",
+            scores = np.full((len(repeats), 1), np.nan)
+        seconds = time.perf_counter() - start
+        returns, num_valid = np.asarray(record.episode.total_cost), np.asarray(data.num_valid)
+        for i, repeat in enumerate(repeats):
+            rows.append(dict(repeat=repeat, trial=record.trial, learned=record.learned,
+                             trial_return=float(returns[i]), eval_mean=float(scores[i].mean()),
+                             eval_std=float(scores[i].std(ddof=1)) if scores.shape[1] > 1 else np.nan,
+                             data_points=int(num_valid[i]), seconds=seconds))
+        print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: trial {record.trial + 1}/{num_trials},"
+              f" returns {np.round(returns, 1).tolist()}, evaluation mean {np.nanmean(scores):.2f} ({seconds:.0f} s)",
               file=sys.stderr, flush=True)
 
-    learning_run(task, problem, key, settings["learned_trials"], optimise, settings["gp_steps"], on_trial)
+    learning_run(task, problem, keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
+                 batched=True, trim_model=True)
     return rows
 
 
 def run(args: Args):
-    """Run every missing experiment, appending its trials; returns this run's rows."""
+    """Run every missing experiment, ``batch`` repeats at a time, appending their trials as
+    each batch ends; returns this run's rows."""
     table = ResultTable(args.stem + ".csv", KEY_COLUMNS)
     task = args.make_task()
-    experiments = [(m, r) for m in str_list(args.methods) for r in range(args.repeats)]
-    for index, (method, repeat) in enumerate(experiments):
-        row_key = dict(task=args.task, cost=getattr(task, "cost_type", "default"), noise_k=args.noise_k,
-                       method=method, repeat=repeat, seed=args.seed + repeat, settings=args.settings_name)
-        if table.has(row_key):
+    cost = getattr(task, "cost_type", "default")
+
+    def row_key(method, repeat):
+        return dict(task=args.task, cost=cost, noise_k=args.noise_k, method=method, repeat=repeat,
+                    seed=args.seed + repeat, settings=args.settings_name(method))
+
+    batches = [(m, list(range(first, min(first + args.batch, args.repeats))))
+               for m in str_list(args.methods) for first in range(0, args.repeats, args.batch)]
+    for index, (method, chunk) in enumerate(batches):
+        missing = [r for r in chunk if not table.has(row_key(method, r))]
+        if not missing:
             continue
-        print(f"[{index + 1}/{len(experiments)}] {method}, repeat {repeat}", file=sys.stderr, flush=True)
-        for row in run_experiment(args, method, repeat):
-            table.append({**row_key, **row})
+        print(f"[batch {index + 1}/{len(batches)}] {method}, repeats {missing}", file=sys.stderr, flush=True)
+        for row in run_experiments(args, method, missing):
+            table.append({**row_key(method, row["repeat"]), **row})
     rows = table.read()
-    return rows[(rows.settings == args.settings_name) & rows.method.isin(str_list(args.methods))
-                & (rows.repeat < args.repeats) & (rows.seed == rows.repeat + args.seed)]
+    current = np.array([s == args.settings_name(m) for s, m in zip(rows.settings, rows.method)], bool)
+    return rows[current & rows.method.isin(str_list(args.methods)) & (rows.repeat < args.repeats)
+                & (rows.seed == rows.repeat + args.seed)]
 
 
 def main(argv=None) -> None:

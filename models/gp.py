@@ -400,6 +400,19 @@ def posterior(log_hyp: jax.Array, data: GPData) -> GPPosterior:
     return GPPosterior(inputs=x, mask=mask, log_hyp=log_hyp, chol=chol, chol_inv=chol_inv, alpha=alpha)
 
 
+def truncate(post: GPPosterior, num_rows: int) -> GPPosterior:
+    """The posterior on the buffer's first ``num_rows`` rows, which must hold every valid row
+    (``add_data`` keeps them first). Predictions are unchanged: masked rows are decoupled in
+    K, so the leading blocks of L and L^-1 are those of the valid rows, and prediction costs
+    O(num_rows^2) instead of O(capacity^2). Works on leading batch axes (host-level check)."""
+    held = int(np.max(np.asarray(post.mask).sum(axis=-1)))
+    if held > num_rows:
+        raise ValueError(f"truncate: {held} valid rows do not fit in {num_rows}")
+    return GPPosterior(inputs=post.inputs[..., :num_rows, :], mask=post.mask[..., :num_rows],
+                       log_hyp=post.log_hyp, chol=post.chol[..., :num_rows, :num_rows],
+                       chol_inv=post.chol_inv[..., :num_rows, :num_rows], alpha=post.alpha[..., :num_rows])
+
+
 class CholeskyError(np.linalg.LinAlgError):
     """The GP's kernel matrix could not be factorised (a ValueError, via numpy's LinAlgError)."""
 

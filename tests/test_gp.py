@@ -105,6 +105,25 @@ def test_predict_difference_matches_dense_numpy_full_and_masked():
         assert np.all(var > 1e-6 * sf2)  # the test points are not degenerate ones
 
 
+def test_truncated_posterior_predicts_like_the_full_buffer():
+    """``gp.truncate`` of a buffer filled by add_data (valid rows first) to 30 and 36 of its 45
+    rows predicts like dense numpy on the 30 valid rows (tolerances as above); cutting a
+    valid row raises."""
+    x, y, log_hyp, x_test = random_problem(2)
+    data = gp.add_data(gp.empty_data(45, x.shape[1], y.shape[1], jnp.float64), jnp.asarray(x), jnp.asarray(y))
+    post = gp.check_posterior(gp.posterior(jnp.asarray(log_hyp), data))
+    mean, var, _ = np_predict(log_hyp, x, y, x_test)
+    sf2 = np.exp(2 * log_hyp[:, -2])
+    for rows in (30, 36):
+        cut = gp.truncate(post, rows)
+        assert cut.chol_inv.shape == (y.shape[1], rows, rows)
+        pred = jax.vmap(gp.predict_difference, in_axes=(None, 0))(cut, jnp.asarray(x_test))
+        np.testing.assert_allclose(pred.mean, mean, rtol=0, atol=1e-9 * np.abs(y).max())
+        np.testing.assert_allclose(pred.model_var, var, rtol=0, atol=1e-9 * sf2.max())
+    with pytest.raises(ValueError, match="valid rows"):
+        gp.truncate(post, 29)
+
+
 def test_nlml_matches_dense_numpy_full_and_masked():
     x, y, log_hyp, _ = random_problem(2)
     rng = np.random.default_rng(3)
