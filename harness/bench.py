@@ -1,6 +1,8 @@
-"""Benchmark: one gradient estimate of each estimator on the paper's cart-pole setting.
+"""Benchmark: one gradient estimate of each estimator on the paper's cart-pole setting, and
+the projected time of one paper-setting learning experiment per method.
 
-    python -m harness.bench [--particles 100,300,1000] [--repeats 5] [--estimators ...] [--out reports]
+    python -m harness.bench [--particles 100,300,1000] [--repeats 5] [--estimators ...]
+        [--learning-methods pilco,tp,... ("" to skip)] [--float32-learning-methods tp] [--out reports]
 
 Setting: the cart-pole (``pipps`` preset, T = 30) with a GP trained on ``trials`` random
 episodes (15 x 30 = 450 points, as after the paper's last trial), the RBF policy at its
@@ -9,8 +11,9 @@ initial parameters, float64. Per estimator and particle count: compile time, the
 (``memory_analysis``: arguments + outputs + temporaries; the CPU backend reports no live
 device memory). In the same run it
 measures the machine's float64 matmul rate and reports the RP gradient's achieved fraction of
-it under a stated flop model. Writes ``bench.md`` (and ``bench.csv``) under ``--out``; no
-wall-clock assertions anywhere: compare the ratios measured in one run.
+it under a stated flop model. The learning section is ``harness.bench_learning``. Writes
+``bench.md`` (and ``bench.csv``, ``bench_learning.csv``) under ``--out``; no wall-clock
+assertions anywhere: compare the ratios measured in one run.
 """
 
 from __future__ import annotations
@@ -30,7 +33,9 @@ import estimators
 import tasks
 from estimators.base import task_problem
 from harness.cli import int_list, parse, str_list
+from harness import bench_learning
 from harness.episodic import add_episode
+from harness.learn import DEFAULT_METHODS
 from models import gp
 from tasks.rollout import run_episode
 
@@ -45,6 +50,8 @@ class Args:
     trials: int = 15
     gp_steps: int = 30
     seed: int = 0
+    learning_methods: str = DEFAULT_METHODS
+    float32_learning_methods: str = "tp"
     out: str = "reports"
 
 
@@ -118,17 +125,24 @@ def main(argv=None) -> None:
     table = pd.DataFrame(rows)
     os.makedirs(args.out, exist_ok=True)
     table.to_csv(os.path.join(args.out, "bench.csv"), index=False)
-    write_report(args, table, rate, task, num_points)
+    learning = None
+    if args.learning_methods:
+        learning = bench_learning.measure(str_list(args.learning_methods), str_list(args.float32_learning_methods),
+                                          seed=args.seed)
+        learning.to_csv(os.path.join(args.out, "bench_learning.csv"), index=False)
+    write_report(args, table, rate, task, num_points, learning)
 
 
-def write_report(args: Args, table: pd.DataFrame, rate: float, task, num_points: int) -> None:
+def write_report(args: Args, table: pd.DataFrame, rate: float, task, num_points: int,
+                 learning: pd.DataFrame | None = None) -> None:
     median = table.pivot(index="estimator", columns="particles", values="median_s")
     ratio = median.div(median.loc["rp"]) if "rp" in median.index else None
     lines = [
         "# Benchmark: one gradient estimate, cart-pole, GP model",
         "",
         f"Command: `python -m harness.bench --particles {args.particles} --repeats {args.repeats} "
-        f"--trials {args.trials}`",
+        f"--trials {args.trials} --learning-methods '{args.learning_methods}' "
+        f"--float32-learning-methods '{args.float32_learning_methods}'`",
         "",
         f"- Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
         f"JAX {jax.__version__} on {jax.default_backend()}; float64.",
@@ -158,6 +172,8 @@ def write_report(args: Args, table: pd.DataFrame, rate: float, task, num_points:
               "Memory of the compiled program (MiB; arguments + outputs + temporaries, XLA memory_analysis):", "",
               table.pivot(index="estimator", columns="particles", values="peak_memory_mb").reset_index().to_markdown(
                   index=False, floatfmt=".0f"), ""]
+    if learning is not None:
+        lines += bench_learning.report_lines(learning)
     with open(os.path.join(args.out, "bench.md"), "w") as f:
         f.write("\n".join(lines))
     print(f"wrote {os.path.join(args.out, 'bench.md')}", file=sys.stderr)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import sys
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -38,6 +39,26 @@ def add_episode(task: Task, data: gp.GPData, episode: Episode) -> gp.GPData:
     return gp.add_data(data, *transitions(task, episode))
 
 
+PROGRESS_EVERY = 100
+"""Optimiser steps between progress lines on stderr."""
+
+
+def report_progress(step: jax.Array, num_steps: int) -> None:
+    """From inside a jitted optimiser loop: a line on stderr every ``PROGRESS_EVERY`` steps
+    (once per step index: under ``vmap`` the callback runs once per seed)."""
+
+    def show(step):
+        step = int(step)
+        if (step + 1) % PROGRESS_EVERY == 0 and step != _last_reported[0]:
+            print(f"    optimiser step {step + 1}/{num_steps}", file=sys.stderr, flush=True)
+        _last_reported[0] = step
+
+    jax.debug.callback(show, step)
+
+
+_last_reported = [-1]
+
+
 @functools.partial(jax.jit, static_argnames=("estimator", "num_steps", "num_particles", "learning_rate", "momentum"))
 def optimise_policy(problem: Problem, theta, key: jax.Array, *, estimator, num_steps: int, num_particles: int,
                     learning_rate: float = LEARNING_RATE, momentum: float = MOMENTUM):
@@ -46,14 +67,16 @@ def optimise_policy(problem: Problem, theta, key: jax.Array, *, estimator, num_s
     (num_steps,). One compilation serves every trial with the same buffer capacity."""
     optimiser = pipps_sgd(learning_rate, momentum)
 
-    def one_step(carry, step_key):
+    def one_step(carry, inputs):
         theta, opt_state = carry
+        step, step_key = inputs
         estimate = estimator(problem, theta, step_key, num_particles)
         updates, opt_state = optimiser.update(estimate.grad, opt_state, grad_var=estimate.grad_var)
+        report_progress(step, num_steps)
         return (optax.apply_updates(theta, updates), opt_state), estimate.value
 
     keys = jax.random.split(key, num_steps)
-    (theta, _), values = jax.lax.scan(one_step, (theta, optimiser.init(theta)), keys)
+    (theta, _), values = jax.lax.scan(one_step, (theta, optimiser.init(theta)), (jnp.arange(num_steps), keys))
     return theta, values
 
 
@@ -69,8 +92,9 @@ def pilco_optimiser(num_steps: int):
         objective = lambda th: pilco_objective(problem, th)[0]  # noqa: E731
         value_and_grad = optax.value_and_grad_from_state(objective)
 
-        def step(carry, _):
+        def step(carry, index):
             theta, state, best, best_value = carry
+            report_progress(index, num_steps)
             value, grad = value_and_grad(theta, state=state)
             updates, state = solver.update(grad, state, theta, value=value, grad=grad, value_fn=objective)
             better = jnp.isfinite(value) & (value < best_value)
@@ -78,7 +102,7 @@ def pilco_optimiser(num_steps: int):
             return (optax.apply_updates(theta, updates), state, best, jnp.where(better, value, best_value)), value
 
         init = (theta, solver.init(theta), theta, jnp.asarray(jnp.inf, jax.tree.leaves(theta)[0].dtype))
-        (last, _, best, best_value), _ = jax.lax.scan(step, init, None, length=num_steps)
+        (last, _, best, best_value), _ = jax.lax.scan(step, init, jnp.arange(num_steps))
         last_value = objective(last)
         return jax.tree.map(lambda b, t: jnp.where(last_value < best_value, t, b), best, last)
 

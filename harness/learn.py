@@ -147,9 +147,9 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
                              trial_return=float(returns[i]), eval_mean=float(scores[i].mean()),
                              eval_std=float(scores[i].std(ddof=1)) if scores.shape[1] > 1 else np.nan,
                              data_points=int(num_valid[i]), seconds=seconds))
+        evaluation = f", evaluation mean {scores.mean():.2f}" if record.learned else ""
         print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: trial {record.trial + 1}/{num_trials},"
-              f" returns {np.round(returns, 1).tolist()}, evaluation mean {np.nanmean(scores):.2f} ({seconds:.0f} s)",
-              file=sys.stderr, flush=True)
+              f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s)", file=sys.stderr, flush=True)
 
     learning_run(task, problem, keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
                  batched=True, trim_model=True)

@@ -57,7 +57,7 @@ def wilson_interval(successes: int, n: int) -> tuple[float, float]:
 def final_evaluations(rows: pd.DataFrame) -> pd.DataFrame:
     """Per experiment (task, cost, noise_k, method, repeat): the last learned trial's row."""
     learned = rows[rows.learned.astype(bool)]
-    keys = ["task", "cost", "noise_k", "method", "repeat"]
+    keys = ["task", "cost", "noise_k", "method", "settings", "repeat"]
     return learned.sort_values("trial").groupby(keys, as_index=False).last()
 
 
@@ -120,7 +120,7 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
     lines += ["", "Success rate [Wilson 95 % interval] n = repeats (the paper's rate, 100 repeats):", "",
               table.reset_index().to_markdown(index=False), "", f"![learning curves]({os.path.basename(stem)}.png)", "",
               "Final evaluation cost per method (mean, sd):", "",
-              final.groupby("method").eval_mean.agg(["mean", "std", "count"]).reset_index().to_markdown(
+              final.groupby(["method", "settings"]).eval_mean.agg(["mean", "std", "count"]).reset_index().to_markdown(
                   index=False, floatfmt=".3f"), ""]
     with open(stem + ".md", "w") as f:
         f.write("\n".join(lines))
@@ -131,7 +131,12 @@ def main(argv=None) -> None:
     if len(paths) != 1 or not paths[0].endswith(".csv"):
         raise SystemExit("usage: python -m harness.learn_report PATH.csv")
     stem = paths[0][:-4]
-    write(pd.read_csv(paths[0]), stem, f"python -m harness.learn_report {paths[0]}")
+    rows = pd.read_csv(paths[0])
+    mixed = rows.groupby("method").settings.nunique()
+    if (mixed > 1).any():
+        raise SystemExit(f"{paths[0]} holds several settings for {list(mixed[mixed > 1].index)}: a rate mixes "
+                         "them; keep one settings value per method (e.g. filter the CSV) and rerun.")
+    write(rows, stem, f"python -m harness.learn_report {paths[0]}")
     print(f"wrote {stem}.{{md,png}}", file=sys.stderr)
 
 

@@ -53,10 +53,28 @@ def test_bench_runs_tiny(tmp_path):
     from harness import bench
 
     bench.main(["--particles", "6", "--repeats", "2", "--trials", "1", "--gp-steps", "2", "--estimators", "rp,tp",
-                "--out", str(tmp_path)])
+                "--learning-methods", "", "--out", str(tmp_path)])
     table = pd.read_csv(tmp_path / "bench.csv")
     assert set(table.estimator) == {"rp", "tp"} and (table.median_s > 0).all() and (table.peak_memory_mb > 0).all()
     assert "Ratio to RP" in (tmp_path / "bench.md").read_text()
+
+
+def test_learning_time_projection_sums_the_quadratic_over_trials():
+    from harness.bench_learning import project
+
+    per_step = lambda rows: 0.1 + 1e-3 * rows + 1e-6 * rows**2  # noqa: E731
+    timed = {t: per_step(30 * t) for t in (1, 8, 15)}
+    expected = 600 * sum(per_step(30 * t) for t in range(1, 16))
+    assert project(timed, 30, 15, 600) == pytest.approx(expected, rel=1e-9)
+
+
+@pytest.mark.slow
+def test_learning_time_measurement_runs(tmp_path):
+    from harness import bench_learning
+
+    table = bench_learning.measure(["lr"], ["lr"], timed_steps=1)
+    assert list(table.dtype) == ["float64", "float32"] and (table.total_min > table.optimise_min).all()
+    assert "paper-setting" in "\n".join(bench_learning.report_lines(table))
 
 
 def test_alignment_statistics_on_known_cases():

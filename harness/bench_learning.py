@@ -1,0 +1,143 @@
+"""Projected time of one paper-setting learning experiment per method, from measured pieces
+(the learning section of ``python -m harness.bench``).
+
+A paper-setting cart-pole experiment (``harness.learn --preset paper``: 15 learned trials, 600
+optimiser steps with 300 particles, or 150 L-BFGS steps for PILCO) takes hours on two cores,
+too long to time whole for every method. This times its pieces on this machine, each after
+compilation, and adds them up:
+
+- an optimiser step at the data sizes of learned trials 1, 8 and 15 (30, 240 and 450 rows;
+  ``learn`` optimises on the posterior trimmed to the rows held), interpolated by the
+  quadratic through those three points (prediction is O(rows^2)) and summed over the 15
+  trials' sizes and steps;
+- the compilation of the optimiser, once per trial (the trimmed size changes every trial);
+- a GP fit on the full buffer (100 L-BFGS steps, capacity 480) and the 30 evaluation runs,
+  once per trial.
+
+Methods listed in ``float32_methods`` are timed again in float32 (the GP fitted in float64,
+its posterior cast).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+import tasks
+from estimators.base import task_problem
+from harness.episodic import add_episode, evaluate_policy, policy_optimiser
+from harness.learn import METHODS, PRESETS
+from models import gp
+from tasks.rollout import run_episode
+
+PAPER_SETTINGS = dict(PRESETS["paper"], learned_trials=15)
+"""The cart-pole's paper preset (15 learned trials: its `pipps` task preset)."""
+TIMED_TRIALS = (1, 8, 15)
+"""Learned trials whose optimiser steps are timed (the data then hold 30 t rows)."""
+
+
+def timed(fn, *args) -> float:
+    """Seconds of one call after a warm-up call (which compiles)."""
+    jax.block_until_ready(fn(*args))
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    return time.perf_counter() - start
+
+
+def buffers(task, key, num_trials: int):
+    """GP buffers after 1..num_trials episodes (random controls: timing does not depend on
+    the policy), each with the capacity of the paper's 16 trials."""
+    data = gp.GPModel(task).empty_data(16 * task.horizon)
+    filled = []
+    for trial in range(num_trials):
+        data = add_episode(task, data, run_episode(task, jax.random.fold_in(key, trial)))
+        filled.append(data)
+    return filled
+
+
+def optimiser_seconds(problem, posterior, theta, method: str, settings: dict, timed_steps: int, dtype):
+    """(seconds per optimiser step, compile seconds) at this posterior, in ``dtype``."""
+    name, overrides = METHODS[method]
+    problem = dataclasses.replace(problem, model_params=jax.tree.map(
+        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, posterior), **overrides)
+    theta = jax.tree.map(lambda x: x.astype(dtype), theta)
+    optimise = jax.jit(policy_optimiser(name, timed_steps, settings["particles"]))
+    key = jax.random.key(0)
+    start = time.perf_counter()
+    compiled = optimise.lower(problem, theta, key).compile()
+    compile_s = time.perf_counter() - start
+    return timed(compiled, problem, theta, key) / timed_steps, compile_s
+
+
+def project(step_s: dict[int, float], rows_per_trial: int, trials: int, steps: int) -> float:
+    """Sum over trials t = 1..trials of ``steps`` x the quadratic through the timed
+    (rows, seconds per step) points, evaluated at 30 t rows."""
+    rows = np.array([rows_per_trial * t for t in step_s])
+    coefficients = np.polyfit(rows, np.array(list(step_s.values())), 2)
+    return float(steps * np.polyval(coefficients, rows_per_trial * np.arange(1, trials + 1)).clip(0).sum())
+
+
+def measure(methods: list[str], float32_methods: list[str], timed_steps: int = 3, seed: int = 0) -> pd.DataFrame:
+    """A row per (method, dtype): seconds per optimiser step at the timed trials, compile, GP
+    fit and evaluation seconds, and the projected minutes (``optimise_min``, ``total_min``)."""
+    unknown = [m for m in methods + float32_methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown methods {unknown}; valid methods: {list(METHODS)}")
+    settings = PAPER_SETTINGS
+    task = tasks.make("cartpole")
+    key = jax.random.key(seed)
+    print("bench: fitting GPs at the timed sizes of a learning run ...", file=sys.stderr, flush=True)
+    filled = buffers(task, key, max(TIMED_TRIALS))
+    fit = jax.jit(lambda d: gp.posterior(gp.train(d, num_steps=settings["gp_steps"]).log_hyp, d))
+    fit_s = timed(fit, filled[-1])
+    posteriors = {t: gp.truncate(gp.check_posterior(fit(filled[t - 1])), t * task.horizon) for t in TIMED_TRIALS}
+    problem = task_problem(task, gp.GPModel(task))
+    theta = problem.policy.init(jax.random.fold_in(key, 10_000))
+    eval_s = timed(lambda th, k: evaluate_policy(task, problem.policy, th, k, settings["eval_runs"]),
+                   theta, jax.random.fold_in(key, 1))
+    runs = [(m, "float64", jnp.float64) for m in methods] + [(m, "float32", jnp.float32) for m in float32_methods]
+    rows = []
+    for index, (method, dtype_name, dtype) in enumerate(runs):
+        steps = settings["pilco_steps"] if METHODS[method][0] == "pilco" else settings["optimiser_steps"]
+        step_s, compile_s = {}, []
+        for t in TIMED_TRIALS:
+            step_s[t], c = optimiser_seconds(problem, posteriors[t], theta, method, settings, timed_steps, dtype)
+            compile_s.append(c)
+        optimise_total = project(step_s, task.horizon, settings["learned_trials"], steps)
+        total = optimise_total + settings["learned_trials"] * (np.mean(compile_s) + fit_s + eval_s)
+        rows.append({"method": method, "dtype": dtype_name, "steps_per_trial": steps,
+                     **{f"step_s_trial{t}": s for t, s in step_s.items()},
+                     "compile_s": float(np.mean(compile_s)), "gp_fit_s": fit_s, "eval_s": eval_s,
+                     "optimise_min": optimise_total / 60, "total_min": total / 60})
+        print(f"[{index + 1}/{len(runs)}] learning {method} {dtype_name}: {total / 60:.1f} min projected "
+              f"(step {', '.join(f'{s:.3f}' for s in step_s.values())} s)", file=sys.stderr, flush=True)
+    return pd.DataFrame(rows)
+
+
+def report_lines(table: pd.DataFrame) -> list[str]:
+    """The markdown section of ``bench.md``."""
+    settings = PAPER_SETTINGS
+    shown = table[["method", "dtype", "steps_per_trial"] + [c for c in table.columns if c.startswith("step_s")]
+                  + ["compile_s", "gp_fit_s", "eval_s", "optimise_min", "total_min"]]
+    return [
+        "## One paper-setting learning experiment per method (projected)",
+        "",
+        f"- Setting: cart-pole, `harness.learn --preset paper`: 1 random then {settings['learned_trials']} learned "
+        f"trials, {settings['optimiser_steps']} optimiser steps with {settings['particles']} particles per trial "
+        f"(PILCO: {settings['pilco_steps']} L-BFGS steps), GP fit {settings['gp_steps']} L-BFGS steps on the full "
+        f"buffer, {settings['eval_runs']} evaluation runs per trial.",
+        "- Projected, not timed whole (one experiment takes over an hour here): seconds per optimiser step "
+        f"measured at learned trials {', '.join(map(str, TIMED_TRIALS))} (30 t rows), interpolated "
+        "quadratically in the rows and summed over the trials; plus per trial one compilation, one GP fit and "
+        "the evaluation runs, each measured once. A PILCO step's cost varies with its line search.",
+        "- Target (issue 5): TP under 10 minutes on 2 cores.",
+        "",
+        shown.to_markdown(index=False, floatfmt=".3g"),
+        "",
+    ]
