@@ -49,6 +49,12 @@ def test_bad_arguments(argv, message):
         variance.main(argv)
 
 
+def test_variance_runs_on_the_unicycle(tmp_path):
+    variance.main(TINY + ["--task", "unicycle", "--estimators", "rp,tp", "--particles", "5", "--out", str(tmp_path)])
+    table = pd.read_csv(tmp_path / "variance_unicycle_gp.csv")
+    assert set(table.estimator) == {"rp", "tp"} and np.isfinite(table.variance).all()
+
+
 def test_bench_runs_tiny(tmp_path):
     from harness import bench
 

@@ -12,7 +12,10 @@ TINY = ["--repeats", "3", "--batch", "2", "--learned-trials", "1", "--optimiser-
 
 
 def test_learning_runs_end_to_end_and_an_interrupted_run_resumes(tmp_path, monkeypatch, capsys):
+    from harness import episodic
+
     argv = TINY + ["--methods", "pilco,tp+sigma_n", "--out", str(tmp_path)]
+    monkeypatch.setattr(episodic, "PROGRESS_EVERY", 1)
     real = learn.run_experiments
     calls = []
 
@@ -34,9 +37,20 @@ def test_learning_runs_end_to_end_and_an_interrupted_run_resumes(tmp_path, monke
     rows = pd.read_csv(csv)
     assert len(rows) == 2 * 3 * 2  # methods x repeats x (1 random + 1 learned trial)
     assert np.isfinite(rows[rows.learned].eval_mean).all()
+    progress = capsys.readouterr().err
+    assert "[batch 4/4] tp+sigma_n, repeats [2]" in progress and "trial 2/2" in progress
+    assert "optimiser step 2/2" in progress  # from inside the jitted, vmapped optimiser
     report = (tmp_path / "learn_cartpole_angle_k1.md").read_text()
     assert "Success threshold" in report and "paper" in report
     assert (tmp_path / "learn_cartpole_angle_k1.png").stat().st_size > 1000
+
+
+def test_learning_runs_on_the_unicycle(tmp_path):
+    """5 random trials, the linear policy and the fall test (a fallen run's rows are masked)."""
+    learn.main(TINY + ["--task", "unicycle", "--methods", "tp", "--out", str(tmp_path)])
+    rows = pd.read_csv(tmp_path / "learn_unicycle_default_k1.csv")
+    assert sorted(rows.trial.unique()) == list(range(6)) and (rows.data_points <= 20 * rows.trial.add(1)).all()
+    assert np.isfinite(rows[rows.learned].eval_mean).all()
 
 
 @pytest.mark.parametrize("argv, message", [
