@@ -17,7 +17,6 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
-import numpy as np
 
 from models.prediction import Model
 from tasks.base import Task
@@ -73,15 +72,15 @@ def task_problem(task: Task, model: Model, model_params: Any = None, *, policy: 
 
 
 def task_moment_forms(task: Task):
-    """The task's features, cost and initial distribution for PILCO, or None if the task does
-    not declare them (or its initial distribution is not on the modelled state)."""
+    """The task's features, cost and initial moments for PILCO, or None if the task does not
+    declare them."""
     from estimators.pilco import MomentForms
 
-    if task.policy_feature_map is None or task.cost_form is None or task.model_state_dim != task.state_dim:
+    initial = task.model_initial_moments
+    if task.policy_feature_map is None or task.cost_form is None or initial is None:
         return None
-    cov = np.diag(np.asarray(task.init_std, float) ** 2)
-    return MomentForms(task.policy_feature_map, task.cost_form, tuple(np.asarray(task.init_mean, float).tolist()),
-                       tuple(map(tuple, cov.tolist())))
+    mean, cov = initial
+    return MomentForms(task.policy_feature_map, task.cost_form, tuple(mean.tolist()), tuple(map(tuple, cov.tolist())))
 
 
 class Estimate(NamedTuple):

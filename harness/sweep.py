@@ -26,9 +26,8 @@ from harness.learn import DEFAULT_METHODS
 CELLS = [("cartpole", "angle", k) for k in (0.01, 1.0, 4.0, 9.0, 16.0)] + [
     ("cartpole", "tip", k) for k in (0.01, 1.0)] + [("unicycle", "", 1.0)]
 ENGINES = ("local", "ray")
-UNICYCLE_METHODS = ("rp", "rp_fs", "gr", "gr_fs", "lr", "tp")
-"""The paper's unicycle columns, less PILCO: the unicycle's cost and features are not yet
-declared as forms (tasks.forms), so moment matching cannot run on it (issue 6)."""
+UNICYCLE_METHODS = ("pilco", "rp", "rp_fs", "gr", "gr_fs", "lr", "tp")
+"""The paper's unicycle columns."""
 
 
 @dataclasses.dataclass(frozen=True)

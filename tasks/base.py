@@ -19,6 +19,7 @@ from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from tasks.forms import SaturatingCost, TrigLinearMap
 from tasks.policies import Policy
@@ -199,6 +200,15 @@ class Task:
     def obs_noise_std(self) -> jax.Array:
         """Observation noise std on the ODE state (variance already scaled by ``noise_k``)."""
         raise NotImplementedError
+
+    @property
+    def model_initial_moments(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Mean (S,) and covariance (S, S) of the initial modelled state ``to_model_state(z_0)``
+        (PILCO starts from the Gaussian with these moments), or None if unknown. Default: the
+        initial distribution itself where the modelled state is the ODE state."""
+        if self.model_state_dim != self.state_dim:
+            return None
+        return np.asarray(self.init_mean, float), np.diag(np.asarray(self.init_std, float) ** 2)
 
     @property
     def model_noise_std(self) -> jax.Array:

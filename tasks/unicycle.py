@@ -13,8 +13,10 @@ import dataclasses
 from typing import ClassVar
 
 import jax.numpy as jnp
+import numpy as np
 
 from tasks.base import Task, check_vector
+from tasks.forms import SaturatingCost, TrigLinearMap
 from tasks.policies import Policy, linear_policy
 
 # Physical parameters (SI), from the spec.
@@ -134,17 +136,41 @@ class Unicycle(Task):
         zero = jnp.zeros((1,), s.dtype)
         return jnp.concatenate([s[:5], contact, s[7:9], zero, s[9:10], zero])
 
-    def cost(self, s):
+    @property
+    def cost_form(self) -> SaturatingCost:
         """``1 - exp(-1/2 (0.5 dx^2 + 0.5 dy^2 + 8 dz^2 + (phi / (4 pi))^2))`` with
         ``dx = xc - r_c sin(psif)``, ``dy = yc - (r_c + rw_c) sin(theta)``,
-        ``dz = rw_c + r_c - rw_c cos(theta) - r_c cos(theta) cos(psif)``."""
-        check_vector("s (modelled state)", s, 10)
-        xc, yc, theta, phi, psif = s[5], s[6], s[7], s[8], s[9]
+        ``dz = rw_c + r_c - rw_c cos(theta) - r_c cos(theta) cos(psif)``: the point
+        ``[dx, dy, dz, phi]`` on the angles ``[psif, theta, theta + psif, theta - psif]``, with
+        ``cos(theta) cos(psif) = (cos(theta + psif) + cos(theta - psif)) / 2``."""
         rwc, rc = COST_WHEEL_RADIUS, COST_FRAME_LENGTH
-        dx = xc - rc * jnp.sin(psif)
-        dy = yc - (rc + rwc) * jnp.sin(theta)
-        dz = rwc + rc - rwc * jnp.cos(theta) - rc * jnp.cos(theta) * jnp.cos(psif)
-        return 1.0 - jnp.exp(-0.5 * (0.5 * dx**2 + 0.5 * dy**2 + 8.0 * dz**2 + (phi / (4 * jnp.pi)) ** 2))
+        angles = np.zeros((4, 10))
+        angles[:, 7] = [0, 1, 1, 1]  # theta
+        angles[:, 9] = [1, 0, 1, -1]  # psif
+        # y = [s (10), sin/cos psif, sin/cos theta, sin/cos (theta + psif), sin/cos (theta - psif)]
+        point = np.zeros((4, 18))
+        point[0, [5, 10]] = [1, -rc]
+        point[1, [6, 12]] = [1, -(rc + rwc)]
+        point[2, [13, 15, 17]] = [-rwc, -rc / 2, -rc / 2]
+        point[3, 8] = 1
+        weight = np.diag([0.5, 0.5, 8.0, 1 / (4 * np.pi) ** 2])
+        return SaturatingCost(TrigLinearMap.make(angles, point, [0.0, 0.0, rwc + rc, 0.0]),
+                              tuple(map(tuple, weight.tolist())))
+
+    @property
+    def policy_feature_map(self) -> TrigLinearMap:
+        """The whole modelled state."""
+        return TrigLinearMap.select(10, angle_dims=(), keep=tuple(range(10)))
+
+    @property
+    def gp_feature_map(self) -> TrigLinearMap:
+        """The modelled state without the yaw phi."""
+        return TrigLinearMap.select(10, angle_dims=(), keep=(0, 1, 2, 3, 4, 5, 6, 7, 9))
+
+    def cost(self, s):
+        """Per-step cost of a modelled state (see ``cost_form``)."""
+        check_vector("s (modelled state)", s, 10)
+        return self.cost_form(s)
 
     def policy_features(self, s):
         """The policy sees the whole modelled state, (10,)."""
@@ -164,6 +190,17 @@ class Unicycle(Task):
     def init_std(self):
         """0.02 on the 5 rates, 0.1 on x and y, 0.02 on the 5 angles."""
         return jnp.array([0.02] * 5 + [0.1, 0.1] + [0.02] * 5)
+
+    @property
+    def model_initial_moments(self):
+        """Exact moments of ``s_0 = to_model_state(z_0)``: the rates and angles keep theirs;
+        ``[xc, yc] = R(phi) [x, y]`` is a rotation of a zero-mean isotropic (x, y) independent of
+        phi, so it has mean 0, covariance sigma_xy^2 I, and no correlation with anything."""
+        mean, std = np.asarray(self.init_mean, float), np.asarray(self.init_std, float)
+        if mean[5] != 0 or mean[6] != 0 or std[5] != std[6]:
+            raise ValueError("model_initial_moments assumes x and y with mean 0 and equal std")
+        keep = [0, 1, 2, 3, 4, 5, 6, 7, 8, 10]  # the ODE entries behind s (x, y stand for xc, yc)
+        return mean[keep], np.diag(std[keep] ** 2)
 
     @property
     def obs_noise_std(self):

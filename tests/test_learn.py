@@ -47,8 +47,9 @@ def test_learning_runs_end_to_end_and_an_interrupted_run_resumes(tmp_path, monke
 
 def test_learning_runs_on_the_unicycle(tmp_path):
     """5 random trials, the linear policy and the fall test (a fallen run's rows are masked)."""
-    learn.main(TINY + ["--task", "unicycle", "--methods", "tp", "--out", str(tmp_path)])
+    learn.main(TINY + ["--task", "unicycle", "--methods", "pilco,tp", "--out", str(tmp_path)])
     rows = pd.read_csv(tmp_path / "learn_unicycle_default_k1.csv")
+    assert set(rows.method) == {"pilco", "tp"}
     assert sorted(rows.trial.unique()) == list(range(6)) and (rows.data_points <= 20 * rows.trial.add(1)).all()
     assert np.isfinite(rows[rows.learned].eval_mean).all()
 
