@@ -10,9 +10,11 @@ the paper's optimiser with ``particles`` particles; PILCO takes ``pilco_steps`` 
 its deterministic objective. After every trial the policy is scored by ``eval_runs`` runs on
 the real system (evaluation only; their data are not used). Repeat r uses seed ``seed + r``.
 
-Every trial of an experiment is appended to ``learn_{task}_{cost}_k{k}.csv`` when the
-experiment ends; a rerun skips finished experiments. The report (``harness.learn_report``)
-regenerates every table and figure from the CSV alone.
+A method's repeats run ``batch`` at a time, vmapped over their seeds (one compiled program
+per batch; the optimiser works on the GP trimmed to the rows held). Every trial of a batch's
+experiments is appended to ``learn_{task}_{cost}_k{k}.csv`` when the batch ends; a rerun
+skips finished experiments. Progress (batch, trial, optimiser step) goes to stderr. The
+report (``harness.learn_report``) regenerates every table and figure from the CSV alone.
 """
 
 from __future__ import annotations
