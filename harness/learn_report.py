@@ -74,7 +74,10 @@ def success_table(rows: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
         cells.setdefault((task, cost, k), {})[method] = (
             f"{wins / len(group):.2f} [{low:.2f}, {high:.2f}] n={len(group)}"
             + (f" (paper {paper:.2f})" if paper is not None else ""))
+    from harness.learn import METHODS  # the paper's column order
+
     table = pd.DataFrame.from_dict(cells, orient="index")
+    table = table[[m for m in METHODS if m in table.columns]]
     table.index = pd.MultiIndex.from_tuples(table.index, names=["task", "cost", "k"])
     return table, thresholds
 
