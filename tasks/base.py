@@ -64,6 +64,8 @@ class Task:
     control_names: ClassVar[tuple[str, ...]]
     u_max: ClassVar[tuple[float, ...]]
     mjcf: ClassVar[str | None] = None
+    mjcf_label: ClassVar[str | None] = None
+    """Set when the MuJoCo model only approximates ``derivative``; printed with its results."""
     substep_dt: ClassVar[float] = 0.01
     """Length (s) of one RK4 sub-step; a control period of 0.1 s gets 10 sub-steps."""
     presets: ClassVar[dict[str, dict[str, Any]]]

@@ -10,6 +10,7 @@ the yawed frame. Equations: shared/specs/unicycle_equations.md.
 from __future__ import annotations
 
 import dataclasses
+import os
 from typing import ClassVar
 
 import jax.numpy as jnp
@@ -90,6 +91,14 @@ def _yaw_rotation(phi):
     return -jnp.array([[c, s], [-s, c]])
 
 
+def _wheel_up_vector(theta, phi, dtheta, dphi):
+    """The wheel plane's up vector ``n = Rz(phi) Rx(-theta) e_z`` and its time derivative."""
+    st, ct, sp, cp = jnp.sin(theta), jnp.cos(theta), jnp.sin(phi), jnp.cos(phi)
+    n = jnp.stack([-sp * st, cp * st, ct])
+    n_dot = jnp.stack([-cp * st * dphi - sp * ct * dtheta, -sp * st * dphi + cp * ct * dtheta, -st * dtheta])
+    return n, n_dot
+
+
 @dataclasses.dataclass(frozen=True)
 class Unicycle(Task):
     """Unicycle balancing. Options: preset, noise_k, dt, horizon, trial counts."""
@@ -101,6 +110,10 @@ class Unicycle(Task):
         "dtheta", "dphi", "dpsiw", "dpsif", "dpsit", "xc", "yc", "theta", "phi", "psif")
     control_names: ClassVar[tuple[str, ...]] = ("V", "U")
     u_max: ClassVar[tuple[float, ...]] = (10.0, 50.0)
+    mjcf: ClassVar[str] = os.path.join(os.path.dirname(__file__), "unicycle.xml")
+    mjcf_label: ClassVar[str | None] = (
+        "APPROXIMATE MuJoCo unicycle: a wheel in soft frictional contact with the floor, "
+        "not the ideal rolling of the reference equations")
     substep_dt: ClassVar[float] = 0.005  # 10 RK4 sub-steps per 0.1 s miss the reference by 5e-5; 20 by 3e-6
     presets: ClassVar[dict] = {
         "pipps": dict(dt=0.1, horizon=20, noise_k=1.0, num_random_trials=5, num_learned_trials=30),
@@ -135,6 +148,34 @@ class Unicycle(Task):
         contact = _yaw_rotation(s[8]).T @ s[5:7]  # R is orthogonal: R^-1 = R^T
         zero = jnp.zeros((1,), s.dtype)
         return jnp.concatenate([s[:5], contact, s[7:9], zero, s[9:10], zero])
+
+    def to_mujoco(self, z):
+        """ODE state -> ``(qpos (8,), qvel (8,))`` of ``unicycle.xml`` (see its header).
+
+        The axle centre is ``c = [x, y, 0] + rw n`` with the wheel plane's up vector
+        ``n = Rz(phi) Rx(-theta) e_z = [-sin phi sin theta, cos phi sin theta, cos theta]``; rolling
+        without slip gives ``cdot = rw dpsiw [cos phi, sin phi, 0] + rw ndot``."""
+        check_vector("z (ODE state)", z, 12)
+        dtheta, dphi, dpsiw, dpsif, dpsit = z[0], z[1], z[2], z[3], z[4]
+        theta, phi, psiw, psif, psit = z[7], z[8], z[9], z[10], z[11]
+        n, n_dot = _wheel_up_vector(theta, phi, dtheta, dphi)
+        heading = jnp.stack([jnp.cos(phi), jnp.sin(phi), jnp.zeros_like(phi)])
+        centre = jnp.concatenate([z[5:7], jnp.zeros((1,), z.dtype)]) + rw * n
+        centre_dot = rw * dpsiw * heading + rw * n_dot
+        qpos = jnp.concatenate([centre, jnp.stack([phi, theta, psif, psiw - psif, psit])])
+        qvel = jnp.concatenate([centre_dot, jnp.stack([dphi, dtheta, dpsif, dpsiw - dpsif, dpsit])])
+        return qpos, qvel
+
+    def from_mujoco(self, qpos, qvel):
+        """``(qpos (8,), qvel (8,))`` -> ODE state (12,); the contact point is ``c - rw n``
+        (the lowest point of an ideal wheel; the slip and sinking of the contact are dropped)."""
+        phi, theta, psif, psiw = qpos[3], qpos[4], qpos[5], qpos[5] + qpos[6]
+        dphi, dtheta, dpsif, dpsiw = qvel[3], qvel[4], qvel[5], qvel[5] + qvel[6]
+        n, _ = _wheel_up_vector(theta, phi, dtheta, dphi)
+        contact = qpos[:2] - rw * n[:2]
+        rates = jnp.stack([dtheta, dphi, dpsiw, dpsif, qvel[7]])
+        angles = jnp.stack([theta, phi, psiw, psif, qpos[7]])
+        return jnp.concatenate([rates, contact, angles])
 
     @property
     def cost_form(self) -> SaturatingCost:
