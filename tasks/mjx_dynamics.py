@@ -99,8 +99,9 @@ class MjxDynamics:
       task: the task whose ``mjcf``, ``dt``, ``to_mujoco`` and ``from_mujoco`` are used.
       model: the ``mjx.Model`` (impl "jax"), float leaves in ``dtype``.
       data0: an ``mjx.Data`` made from ``model``, float leaves in ``dtype``; each control step
-        starts from it with ``qpos``, ``qvel`` and ``ctrl`` replaced (no state is carried
-        besides those: the model has no constraints, so no solver warm start).
+        starts from it with ``qpos``, ``qvel`` and ``ctrl`` replaced: no other state is carried
+        across control steps (with contact, the constraint solver's warm start restarts each
+        control period).
       num_substeps: MJX steps per control period, ``round(task.dt / model.opt.timestep)``.
       dtype: float dtype of the simulation.
       jaxpr: the traced single-state step ``(z (state_dim,), u (control_dim,)) -> z_next``.

@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 
 import tasks
+from tasks import unicycle
 from conftest import TESTDATA
 
 
@@ -128,6 +129,47 @@ def test_unicycle_fall_test():
     assert bool(task.fallen(upright.at[7].set(1.6)))  # roll past pi/2
     assert bool(task.fallen(upright.at[10].set(-1.6)))  # frame pitch past pi/2
     assert not bool(task.fallen(upright.at[8].set(3.0)))  # yaw does not count
+
+
+def test_unicycle_mujoco_state_map():
+    """``to_mujoco`` then ``from_mujoco`` is the identity, and the axle's velocity is that of a
+    wheel rolling without slip: ``cdot = omega_wheel x (c - contact)``, with the wheel's angular
+    velocity ``phidot e_z - thetadot x1 + psiwdot y2`` (yaw, roll about -x, spin about the axle
+    y2 = Rz(phi) Rx(-theta) e_y) written here independently of the task's code."""
+    task = tasks.make("unicycle")
+    for z in np.random.default_rng(3).normal(0.0, 0.5, (5, 12)):
+        qpos, qvel = task.to_mujoco(jnp.asarray(z))
+        np.testing.assert_allclose(task.from_mujoco(qpos, qvel), z, atol=1e-14)
+        dtheta, dphi, dpsiw, theta, phi = z[0], z[1], z[2], z[7], z[8]
+        cp, sp, ct, st = np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta)
+        x1 = np.array([cp, sp, 0.0])
+        y2 = np.array([-sp * ct, cp * ct, -st])
+        up = np.array([-sp * st, cp * st, ct])
+        omega = dphi * np.array([0.0, 0.0, 1.0]) - dtheta * x1 + dpsiw * y2
+        np.testing.assert_allclose(qvel[:3], np.cross(omega, unicycle.rw * up), atol=1e-14)
+        np.testing.assert_allclose(qpos[:3], np.append(z[5:7], 0.0) + unicycle.rw * up, atol=1e-14)
+
+
+@pytest.mark.parametrize("psif, dpsiw, dpsif, U", [(0.1, 0.0, 0.0, 0.0), (-0.4, 3.0, -2.0, 20.0), (1.0, -5.0, 4.0, -50.0)])
+def test_unicycle_planar_equations(psif, dpsiw, dpsif, U):
+    """Upright (theta = 0) without yaw or turntable motion, the reference equations are the
+    Lagrangian of a wheel (mw, Cw) under a frame (mf at rf) and turntable (mt at r, At), with
+    q = (psiw, psif), M = [[(mw + mf + mt) rw^2 + Cw, K rw cos psif], [., mf rf^2 + mt r^2 + I + At]],
+    K = mf rf + mt r, and M qddot = [U + K rw sin(psif) psifdot^2, -U + g K sin(psif)] -- with the
+    frame's pitch inertia I = Cw (0.0484), not the spec's frame inertia Cf (0.8292). This pins
+    down the equations' rigid-body model, which tasks/unicycle.xml copies."""
+    u = unicycle
+    z = np.zeros(12)
+    z[[2, 3, 10]] = dpsiw, dpsif, psif
+    acc = np.asarray(tasks.make("unicycle").derivative(jnp.asarray(z), jnp.array([0.0, U])))
+    K = u.mf * u.rf + u.mt * u.r
+    force = [U + K * u.rw * np.sin(psif) * dpsif**2, -U + u.g * K * np.sin(psif)]
+    for pitch_inertia, matches in ((u.Cw, True), (u.Cf, False)):
+        m12 = K * u.rw * np.cos(psif)
+        M = [[(u.mw + u.mf + u.mt) * u.rw**2 + u.Cw, m12], [m12, u.mf * u.rf**2 + u.mt * u.r**2 + pitch_inertia + u.At]]
+        lagrangian = np.linalg.solve(M, force)
+        assert np.allclose(acc[[2, 3]], lagrangian, rtol=1e-12, atol=1e-12) == matches
+    np.testing.assert_allclose(acc[[0, 1, 4]], 0.0, atol=1e-12)  # no roll, yaw or turntable acceleration
 
 
 def test_noise_and_presets():
