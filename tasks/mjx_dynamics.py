@@ -24,6 +24,7 @@ stdout when warp is not installed (harmless: the JAX implementation is used).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import gc
 from typing import Any, Callable
@@ -34,6 +35,7 @@ import mujoco
 import numpy as np
 from jax.extend.core import ClosedJaxpr, Jaxpr, jaxpr_as_fun
 from mujoco import mjx
+from mujoco.mjx._src import solver as mjx_solver
 
 from tasks.base import Task, check_vector
 
@@ -83,6 +85,41 @@ def _own_constants(closed: ClosedJaxpr) -> ClosedJaxpr:
         return ClosedJaxpr(fix_jaxpr(closed.jaxpr), consts)
 
     return fix_closed(closed)
+
+
+class _Overlay:
+    """A module seen through: the given attributes replaced, every other one the module's."""
+
+    def __init__(self, module, **replaced):
+        self._module = module
+        self.__dict__.update(replaced)
+
+    def __getattr__(self, name):
+        return getattr(self._module, name)
+
+
+@contextlib.contextmanager
+def _bounded_constraint_solver(iterations: int):
+    """Within the block, MJX's constraint solver runs its iterations in a ``lax.scan`` of length
+    ``iterations`` that turns into no-ops once converged, instead of a ``lax.while_loop``.
+
+    The results are those of the while loop (and of MuJoCo in C: at most ``opt.iterations``,
+    stopping at ``opt.tolerance``), but reverse-mode differentiable: JAX cannot transpose a
+    while loop, so MJX itself differentiates only single-iteration solves, which do not
+    converge on contacts (tasks/unicycle.xml). Only the solver module's ``jax`` is swapped, and
+    only while the step is traced; MJX's own scan-based loop helper does the iterating (the fix
+    proposed upstream, google-deepmind/mujoco#2259).
+    """
+
+    def bounded_while_loop(cond_fun, body_fun, init_val):
+        return mjx_solver._while_loop_scan(cond_fun, body_fun, init_val, iterations)
+
+    original = mjx_solver.jax
+    mjx_solver.jax = _Overlay(jax, lax=_Overlay(jax.lax, while_loop=bounded_while_loop))
+    try:
+        yield
+    finally:
+        mjx_solver.jax = original
 
 
 def _clear_jax_caches() -> None:
@@ -180,7 +217,7 @@ def mjx_dynamics(task: Task, dtype=jnp.float64) -> MjxDynamics:
     other_mode = x64 != jax.config.read("jax_enable_x64")
     if other_mode:
         _clear_jax_caches()
-    with jax.enable_x64(x64):
+    with jax.enable_x64(x64), _bounded_constraint_solver(int(mj_model.opt.iterations)):
         model = _cast_floats(mjx.put_model(mj_model, impl="jax"), dtype)
         data0 = _cast_floats(mjx.make_data(model), dtype)
         jaxpr = jax.make_jaxpr(_raw_step(task, model, data0, num_substeps, dtype))(
