@@ -178,6 +178,7 @@ def write_report(args: Args, rows: pd.DataFrame, reference_rse: float) -> None:
         f"--reference-estimator {args.reference_estimator} --reference-particles {args.reference_particles} "
         f"--reference-repeats {args.reference_repeats} --seed {args.seed} {args.scenario_flags()}`",
         "",
+        *scenario_lib.model_labels(args.task, str_list(args.models) + [args.reference_model]),
         f"- Scenario: {args.scenario.describe()}; every model is evaluated at its theta0.",
         f"- Reference g*: the mean of {args.reference_repeats} {args.reference_estimator} estimates with "
         f"{args.reference_particles} particles on the {args.reference_model} dynamics; its relative standard error "

@@ -287,6 +287,7 @@ def write_report(args: Args, rows: pd.DataFrame, slices: dict) -> None:
         f"--slice-dims {args.slice_dims} --slice-deltas {args.slice_deltas} --slice-particles {args.slice_particles} "
         f"--grid {args.grid} --box-stds {args.box_stds:g} --seed {args.seed} {args.scenario_flags()}`",
         "",
+        *scenario_lib.model_labels(args.task, [args.model]),
         f"- Scenario: {args.scenario.describe()}.",
         f"- theta = theta0 + delta d, d a fixed random unit direction; one fixed key draws the {args.particles} "
         "particles at every delta; intervals are 95 % (1.96 standard errors over particles). FTLE: finite-time "

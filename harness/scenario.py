@@ -167,6 +167,13 @@ def model_problem(task_name: str, model: str, scenario: Scenario) -> Problem:
     return task_problem(task, SimulatorModel(task, backend=model))
 
 
+def model_labels(task_name: str, models: list[str]) -> list[str]:
+    """Report lines that label an approximate MuJoCo model (``task.mjcf_label``) when "mjx" is
+    among ``models``; none otherwise."""
+    label = tasks.make(task_name).mjcf_label
+    return [f"- **mjx: {label}** (see {os.path.basename(tasks.make(task_name).mjcf)}).", ""] if label and "mjx" in models else []
+
+
 def check_estimators(names: list[str]) -> None:
     for name in names:
         estimators.make(name)  # fails with the list of estimators

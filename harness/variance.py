@@ -213,6 +213,7 @@ def write_report(args: Args, table: pd.DataFrame) -> None:
         f"--repeats {args.num_repeats} --delta-theta {args.delta_theta} --seed {args.seed} "
         f"{args.scenario_flags()}`",
         "",
+        *scenario_lib.model_labels(args.task, [args.model]),
         f"- Scenario: {args.scenario.describe()}.",
         f"- Variance: trace of the covariance of {args.num_repeats} independent gradient estimates "
         f"(float{'64' if args.x64 else '32'}); theta = theta0 + delta d, d a fixed random unit direction.",

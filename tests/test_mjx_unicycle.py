@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+import pandas as pd
 import pytest
 
 import tasks
@@ -106,3 +107,30 @@ def test_mjx_unicycle_gradient_is_finite_and_matches_finite_differences(task, dy
     values = np.asarray(jax.jit(jax.vmap(loss))(inputs + offsets))
     fd = (values[: inputs.size] - values[inputs.size:]) / (2 * FD_STEP)
     np.testing.assert_allclose(grad, fd, rtol=0.0, atol=FD_TOL * np.max(np.abs(fd)))
+
+
+@pytest.mark.slow
+def test_mjx_agreement_end_to_end_with_resume(tmp_path):
+    """``python -m harness.mjx_agreement`` at a tiny size writes its CSV and markdown (labelled
+    approximate), agrees with the equations without control, and a rerun computes nothing."""
+    from harness import mjx_agreement
+
+    argv = ["--task", "unicycle", "--states", "3", "--horizon", "2", "--control-fractions", "0,1",
+            "--out", str(tmp_path)]
+    mjx_agreement.main(argv)
+    frame = pd.read_csv(tmp_path / "mjx_agreement_unicycle.csv")
+    assert len(frame) == 4 and set(frame.step) == {1, 2}
+    first = frame[(frame.control_fraction == 0) & (frame.step == 1)].iloc[0]
+    assert first.max_abs_error < IDEAL_TOL and first.nan_states == 0 and first.nan_gradients == 0
+    assert "APPROXIMATE" in (tmp_path / "mjx_agreement_unicycle.md").read_text()
+    mjx_agreement.main(argv)
+    assert len(pd.read_csv(tmp_path / "mjx_agreement_unicycle.csv")) == 4
+
+
+def test_mjx_agreement_rejects_a_task_without_mujoco_model_or_bad_fractions():
+    from harness import mjx_agreement
+
+    with pytest.raises(ValueError, match="fractions"):
+        mjx_agreement.Args(task="unicycle", control_fractions="0,2")
+    with pytest.raises(ValueError, match="valid tasks"):
+        mjx_agreement.Args(task="pendulum")
