@@ -189,6 +189,10 @@ def main(argv=None) -> None:
 
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
+    # The optimiser's progress callback (jax.debug.callback in a vmapped scan) can hang the CPU
+    # runtime under asynchronous dispatch (jax-ml/jax#25861): seen twice here, both processes
+    # idle in futex waits mid-trial. Synchronous dispatch costs nothing at these sizes.
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
     rows = run(args)
     learn_report.write(rows, args.stem, f"python -m harness.learn {' '.join(argv or sys.argv[1:])}")
     print(f"wrote {args.stem}.{{csv,md,png}}", file=sys.stderr)
