@@ -57,31 +57,28 @@ class Args:
             raise ValueError("--control-fractions must lie in [0, 1] (fractions of each control's range)")
 
 
-def rollouts(task, mjx_step, z0, controls):
-    """Both models from z0 (N, n) under controls (N, H, m) -> (mjx, ideal) states (N, H, n)."""
-
-    def run(step, z, us):
-        return jax.lax.scan(lambda z, u: (step(z, u),) * 2, z, us)[1]
-
-    both = jax.jit(jax.vmap(lambda z, us: (run(mjx_step, z, us), run(task.step, z, us))))
-    return both(z0, controls)
+def _trajectory(step, z, controls):
+    """States after each control step: z (n,), controls (H, m) -> (H, n)."""
+    return jax.lax.scan(lambda z, u: (step(z, u),) * 2, z, controls)[1]
 
 
-def gradient_is_finite(task, mjx_step, z0, controls):
-    """Whether the MJX gradient of ``sum_k |s_k|^2`` w.r.t. (z0, controls) is finite, per state (N,)."""
+def comparison_functions(task, mjx_step):
+    """Jitted once per run, over a batch of states z0 (N, n) and controls (N, H, m):
+    ``rollouts -> (mjx, ideal)`` states (N, H, n), and ``gradient_is_finite -> (N,)``, whether
+    the MJX gradient of ``sum_k |s_k|^2`` w.r.t. (z0, controls) is finite."""
 
     def loss(z, us):
-        zs = jax.lax.scan(lambda z, u: (mjx_step(z, u),) * 2, z, us)[1]
-        return jnp.sum(jax.vmap(task.to_model_state)(zs) ** 2)
+        return jnp.sum(jax.vmap(task.to_model_state)(_trajectory(mjx_step, z, us)) ** 2)
 
     def finite(z, us):
         g_z, g_u = jax.grad(loss, argnums=(0, 1))(z, us)
         return jnp.all(jnp.isfinite(g_z)) & jnp.all(jnp.isfinite(g_u))
 
-    return jax.jit(jax.vmap(finite))(z0, controls)
+    rollouts = jax.jit(jax.vmap(lambda z, us: (_trajectory(mjx_step, z, us), _trajectory(task.step, z, us))))
+    return rollouts, jax.jit(jax.vmap(finite))
 
 
-def measure(args: Args, fraction: float, mjx_step) -> list[dict]:
+def measure(args: Args, fraction: float, functions) -> list[dict]:
     """The rows of one control fraction: one per step k = 1..horizon."""
     task = tasks.make(args.task)
     key_z, key_u = jax.random.split(jax.random.fold_in(jax.random.key(args.seed), round(1000 * fraction)))
@@ -89,8 +86,9 @@ def measure(args: Args, fraction: float, mjx_step) -> list[dict]:
     u_max = jnp.asarray(task.u_max, jnp.float64)
     controls = fraction * u_max * jax.random.uniform(
         key_u, (args.states, args.horizon, task.control_dim), jnp.float64, -1.0, 1.0)
-    z_mjx, z_ideal = (np.asarray(z) for z in rollouts(task, mjx_step, z0, controls))
-    grad_ok = np.asarray(gradient_is_finite(task, mjx_step, z0, controls))
+    rollouts, gradient_is_finite = functions
+    z_mjx, z_ideal = (np.asarray(z) for z in rollouts(z0, controls))
+    grad_ok = np.asarray(gradient_is_finite(z0, controls))
     rows = []
     for k in range(args.horizon):
         finite = np.all(np.isfinite(z_mjx[:, k]), axis=1)
@@ -114,16 +112,16 @@ def run(args: Args) -> pd.DataFrame:
 
     table = ResultTable(os.path.join(args.out, f"mjx_agreement_{args.task}.csv"), KEY_COLUMNS)
     task = tasks.make(args.task)
-    mjx_step = None
+    functions = None
     for fraction in float_list(args.control_fractions):
         if table.has(dict(task=args.task, control_fraction=fraction, step=args.horizon, states=args.states,
                           seed=args.seed)):
             continue
-        if mjx_step is None:
-            mjx_step = mjx_step_fn(task, jnp.float64)
+        if functions is None:
+            functions = comparison_functions(task, mjx_step_fn(task, jnp.float64))
         print(f"[mjx_agreement] {args.task}: controls up to {fraction:g} of their range, "
               f"{args.states} states, {args.horizon} steps (compiling MJX takes minutes)", file=sys.stderr, flush=True)
-        for row in measure(args, fraction, mjx_step):
+        for row in measure(args, fraction, functions):
             table.append(row)
     frame = table.read()
     return frame[(frame.states == args.states) & (frame.seed == args.seed) & (frame.step <= args.horizon)]

@@ -170,8 +170,10 @@ def model_problem(task_name: str, model: str, scenario: Scenario) -> Problem:
 def model_labels(task_name: str, models: list[str]) -> list[str]:
     """Report lines that label an approximate MuJoCo model (``task.mjcf_label``) when "mjx" is
     among ``models``; none otherwise."""
-    label = tasks.make(task_name).mjcf_label
-    return [f"- **mjx: {label}** (see {os.path.basename(tasks.make(task_name).mjcf)}).", ""] if label and "mjx" in models else []
+    task = tasks.make(task_name)
+    if task.mjcf_label is None or "mjx" not in models:
+        return []
+    return [f"- **mjx: {task.mjcf_label}** (see {os.path.basename(task.mjcf)}).", ""]
 
 
 def check_estimators(names: list[str]) -> None:
