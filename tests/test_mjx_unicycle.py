@@ -64,9 +64,8 @@ def batched_step(dynamics):
     return jax.jit(jax.vmap(dynamics.step))
 
 
-def _mujoco_c_step(task, z, u):
-    """One control step of tasks/unicycle.xml with MuJoCo in C."""
-    model = mujoco.MjModel.from_xml_path(task.mjcf)
+def _mujoco_c_step(task, model, z, u):
+    """One control step of ``model`` (tasks/unicycle.xml, loaded once) with MuJoCo in C."""
     data = mujoco.MjData(model)
     qpos, qvel = task.to_mujoco(z)
     data.qpos[:], data.qvel[:], data.ctrl[:] = np.asarray(qpos), np.asarray(qvel), np.asarray(u)
@@ -79,7 +78,8 @@ def test_mjx_unicycle_steps_as_mujoco_in_c(task, batched_step, states):
     us = _controls(1.0)
     mjx_next = np.asarray(batched_step(states, us))
     assert mjx_next.dtype == np.float64 and np.all(np.isfinite(mjx_next))
-    c_next = np.stack([_mujoco_c_step(task, z, u) for z, u in zip(states, us)])
+    model = mujoco.MjModel.from_xml_path(task.mjcf)
+    c_next = np.stack([_mujoco_c_step(task, model, z, u) for z, u in zip(states, us)])
     assert np.max(np.abs(mjx_next - c_next)) < C_TOL
 
 
