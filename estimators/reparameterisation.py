@@ -15,18 +15,19 @@ from __future__ import annotations
 import dataclasses
 
 import jax
-import jax.numpy as jnp
 
 from estimators.base import Estimate, Problem, draw_noise, particle_estimate, particle_gradients, rollout, theta_dtype
+from models.linalg import cholesky
 
 
 def gaussian_resample(s_tilde: jax.Array, xi: jax.Array) -> jax.Array:
     """``mu + xi L^T`` with mu (S,) and L (S, S) the Cholesky factor of the particles'
-    covariance; s_tilde, xi: (P, S) -> (P, S). A singular covariance gives NaN (counted)."""
+    covariance; s_tilde, xi: (P, S) -> (P, S). A singular covariance gives NaN (counted).
+    The Cholesky is ``models.linalg.cholesky``: vmap over seeds never batches LAPACK."""
     mu = s_tilde.mean(axis=0)
     centred = s_tilde - mu
     cov = centred.T @ centred / (s_tilde.shape[0] - 1)
-    return mu + xi @ jnp.linalg.cholesky(cov).T
+    return mu + xi @ cholesky(cov).T
 
 
 @dataclasses.dataclass(frozen=True)

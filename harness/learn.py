@@ -189,9 +189,9 @@ def main(argv=None) -> None:
 
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
-    # Batched runs have hung mid-trial (no CPU use, futex waits); asynchronous CPU dispatch with
-    # debug callbacks is a known hang (jax-ml/jax#25861), so it is off (no cost at these sizes).
-    # It did not stop the hangs seen here: the cause is still open (see the README's Status).
+    # Asynchronous CPU dispatch with debug callbacks (the optimiser's progress lines) is a known
+    # hang (jax-ml/jax#25861), so it is off (no cost at these sizes). The hangs seen in batched
+    # runs were batched LAPACK calls, now avoided (models/linalg.py, tests/test_linalg.py).
     jax.config.update("jax_cpu_enable_async_dispatch", False)
     rows = run(args)
     learn_report.write(rows, args.stem, f"python -m harness.learn {' '.join(argv or sys.argv[1:])}")

@@ -21,7 +21,7 @@ host. Everything computes in the dtype of the data; nothing here changes JAX's g
 Transformations: prediction is elementwise ops and matrix products, so vmap, grad, jvp and
 jacfwd all apply. Training and ``posterior`` go through a Cholesky factorisation and triangular
 solves written so that vmap never batches a LAPACK call (batched ones deadlock jaxlib 0.10 on
-CPU; see "linear algebra" below); they support vmap and reverse-mode derivatives, not jvp.
+CPU; see ``models.linalg``); they support vmap and reverse-mode derivatives, not jvp.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from models.linalg import cholesky, solve_lower, solve_lower_t
 from models.prediction import Prediction
 from tasks.base import Task, check_vector
 
@@ -160,89 +161,6 @@ def _kernel_matrix(log_hyp_e: jax.Array, x: jax.Array) -> jax.Array:
     return sf2 * jnp.exp(-0.5 * d2)
 
 
-# ----- linear algebra that never batches a LAPACK call -------------------------------------------
-# jaxlib 0.10.2 (the version pinned here) on CPU runs a batched Cholesky or triangular solve
-# (batch > 1) by splitting the batch over XLA's intra-op thread pool and blocking until the pieces
-# finish. When two such calls run concurrently (independent ops in one program: e.g. both
-# branches of a cond that vmap turned into a select, as in optax's line search) each holds a pool
-# thread and waits for pieces queued behind the other: a deadlock at 0 % CPU, seen on 2 cores
-# with jax.vmap(train) and with two independent (8, 64, 64) Choleskys in one jit. Unbatched calls
-# did not hang (16 concurrent unbatched Choleskys and solves, 100 runs). So the two operations
-# below are ``custom_vmap``ped: a batched matrix is handled by ``lax.map`` (a loop of unbatched
-# calls); a shared matrix with a batch of right-hand sides becomes ONE call with the batch folded
-# into the columns. ``custom_vjp`` gives them reverse-mode derivatives (grad, vjp); forward mode
-# (jvp, jacfwd) is not available through them. Prediction uses neither (it multiplies by the
-# stored inverse factor) and supports every transformation.
-
-
-@jax.custom_vjp
-@jax.custom_batching.custom_vmap
-def _cholesky(a: jax.Array) -> jax.Array:
-    """Lower Cholesky factor of a symmetric positive definite a (N, N); NaN where it fails."""
-    return jnp.linalg.cholesky(a)
-
-
-@_cholesky.def_vmap
-def _cholesky_vmap(axis_size, in_batched, a):
-    return jax.lax.map(_cholesky, a), True
-
-
-def _make_solve(transpose: bool):
-    """x = L^-1 b (or L^-T b with ``transpose``), L (N, N) lower triangular, b (N,) or (N, M)."""
-
-    @jax.custom_vjp
-    @jax.custom_batching.custom_vmap
-    def solve(chol, b):
-        return jax.scipy.linalg.solve_triangular(chol, b, lower=True, trans=1 if transpose else 0)
-
-    @solve.def_vmap
-    def solve_vmap(axis_size, in_batched, chol, b):
-        chol_batched, b_batched = in_batched
-        if chol_batched:
-            b = b if b_batched else jnp.broadcast_to(b, (axis_size,) + b.shape)
-            return jax.lax.map(lambda args: solve(*args), (chol, b)), True
-        cols = jnp.moveaxis(b, 0, -1).reshape(b.shape[1], -1)  # (N, B*M): one call
-        x = solve(chol, cols).reshape(b.shape[1:] + (axis_size,))
-        return jnp.moveaxis(x, -1, 0), True
-
-    def fwd(chol, b):
-        x = solve(chol, b)
-        return x, (chol, x)
-
-    def bwd(res, x_bar):
-        # L x = b: b_bar = L^-T x_bar, L_bar = -tril(b_bar x^T); L^T x = b: b_bar = L^-1 x_bar,
-        # L_bar = -tril(x b_bar^T).
-        chol, x = res
-        b_bar = (_solve_lower if transpose else _solve_lower_t)(chol, x_bar)
-        n = chol.shape[0]
-        outer = b_bar.reshape(n, -1) @ x.reshape(n, -1).T
-        return -jnp.tril(outer.T if transpose else outer), b_bar
-
-    solve.defvjp(fwd, bwd)
-    return solve
-
-
-_solve_lower = _make_solve(transpose=False)
-_solve_lower_t = _make_solve(transpose=True)
-
-
-def _cholesky_fwd(a):
-    chol = _cholesky(a)
-    return chol, chol
-
-
-def _cholesky_bwd(chol, chol_bar):
-    # Transpose of JAX's Cholesky JVP: a_bar = sym(L^-T phi(L^T L_bar) L^-1), phi = lower
-    # triangle with the diagonal halved, sym(X) = (X + X^T) / 2.
-    p = jnp.tril(chol.T @ chol_bar)
-    p = p - 0.5 * jnp.diag(jnp.diag(p))
-    s = _solve_lower_t(chol, _solve_lower_t(chol, p).T).T
-    return (0.5 * (s + s.T),)
-
-
-_cholesky.defvjp(_cholesky_fwd, _cholesky_bwd)
-
-
 def _factor(log_hyp_e: jax.Array, x: jax.Array, y: jax.Array, mask: jax.Array):
     """Cholesky factor L (N, N) of ``K_ij m_i m_j + diag(m_i sn^2 + (1 - m_i))`` and
     ``alpha = (L L^T)^-1 y`` (N,) for one output; x (N, D), y (N,) with padding zeroed."""
@@ -250,8 +168,8 @@ def _factor(log_hyp_e: jax.Array, x: jax.Array, y: jax.Array, mask: jax.Array):
     k = _kernel_matrix(log_hyp_e, x)
     k = jnp.where(mask[:, None] & mask[None, :], k, 0.0)
     k = k + jnp.diag(jnp.where(mask, sn2, 1.0))
-    chol = _cholesky(k)
-    alpha = _solve_lower_t(chol, _solve_lower(chol, y))
+    chol = cholesky(k)
+    alpha = solve_lower_t(chol, solve_lower(chol, y))
     return chol, alpha
 
 
@@ -388,7 +306,7 @@ class GPPosterior(NamedTuple):
 
 def _posterior_one(log_hyp_e, x, y, mask):
     chol, alpha = _factor(log_hyp_e, x, y, mask)
-    return chol, _solve_lower(chol, jnp.eye(x.shape[0], dtype=x.dtype)), alpha
+    return chol, solve_lower(chol, jnp.eye(x.shape[0], dtype=x.dtype)), alpha
 
 
 @jax.jit

@@ -14,10 +14,10 @@ output y and ``io = s^-1 cov(x, y)`` (``Moments``): what PILCO chains through a 
 Layout as in ``models.gp``: ``log_hyp`` (E, D+2), row a is ``[log l_a1..l_aD, log sf_a, log sn_a]``
 (PILCO and ``shared/testdata/moment_matching.json`` store the transpose).
 
-Transformations: pure functions of arrays. The only linear algebra is ``_solve_det`` on (D, D)
-matrices, Gauss-Jordan elimination written in elementwise ops: no LAPACK call, so jit, vmap
-(over outputs inside, over anything outside), grad and jvp all apply (models/gp.py explains
-why batched LAPACK calls are avoided under jaxlib 0.10 on CPU).
+Transformations: pure functions of arrays. The only linear algebra is ``linalg.solve_det`` on
+(D, D) matrices, Gauss-Jordan elimination written in elementwise ops: no LAPACK call, so jit,
+vmap (over outputs inside, over anything outside), grad and jvp all apply (``models.linalg``
+explains why batched LAPACK calls are avoided under jaxlib 0.10 on CPU).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from models.gp import GPPosterior
+from models.linalg import solve_det
 from tasks.policies import RBF_NOISE_STD, RBF_SIGNAL_STD, RBFNetwork
 
 
@@ -48,24 +49,6 @@ class CostMoments(NamedTuple):
 
     mean: jax.Array
     var: jax.Array
-
-
-def _solve_det(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """(a^-1 b (n, k), det a) for a small a (n, n) and b (n, k).
-
-    Gauss-Jordan elimination with partial pivoting, unrolled over the n columns; det a is the
-    signed product of the pivots.
-    """
-    n = a.shape[0]
-    rows = jnp.arange(n)
-    ab = jnp.concatenate([a, b], axis=1)
-    det = jnp.ones((), ab.dtype)
-    for k in range(n):
-        p = k + jnp.argmax(jnp.abs(ab[k:, k]))
-        ab = ab[jnp.where(rows == k, p, jnp.where(rows == p, k, rows))]  # swap rows k and p
-        det = det * jnp.where(p == k, 1.0, -1.0) * ab[k, k]
-        ab = ab - jnp.where(rows == k, 0.0, ab[:, k] / ab[k, k])[:, None] * ab[k]
-    return ab[:, n:] / jnp.diag(ab[:, :n])[:, None], det
 
 
 # ----- Gaussian processes ------------------------------------------------------------------------
@@ -102,7 +85,7 @@ def gp_moments(inputs: jax.Array, beta: jax.Array, log_hyp: jax.Array, m: jax.Ar
     def mean_io(ell_a, log_sf2_a, beta_a):
         # (s + Lambda)^-1 = Lambda^-1/2 A^-1 Lambda^-1/2 with A = Lambda^-1/2 s Lambda^-1/2 + I,
         # |A| = |s Lambda^-1 + I|.
-        a_inv_nu, det_a = _solve_det(s / jnp.outer(ell_a, ell_a) + eye, (nu / ell_a).T)
+        a_inv_nu, det_a = solve_det(s / jnp.outer(ell_a, ell_a) + eye, (nu / ell_a).T)
         b_inv_nu = a_inv_nu / ell_a[:, None]  # (D, N): column i is (s + Lambda)^-1 nu_i
         q = jnp.exp(log_sf2_a - 0.5 * jnp.log(det_a) - 0.5 * jnp.sum(nu.T * b_inv_nu, axis=0))
         return q @ beta_a, b_inv_nu @ (beta_a * q)
@@ -113,7 +96,7 @@ def gp_moments(inputs: jax.Array, beta: jax.Array, log_hyp: jax.Array, m: jax.Ar
         u, w = nu / ell_a**2, nu / ell_b**2  # (N, D)
         sqrt_p = jnp.sqrt(1.0 / ell_a**2 + 1.0 / ell_b**2)
         y = sqrt_p[:, None] * s
-        g_inv_y, det_g = _solve_det(y * sqrt_p + eye, y)
+        g_inv_y, det_g = solve_det(y * sqrt_p + eye, y)
         t = s - y.T @ g_inv_y  # R^-1 s
         ut = u @ t
         # log k_a(x_i, m) + log k_b(x_j, m) + 1/2 z_ij^T t z_ij, the quadratic form expanded:
@@ -212,7 +195,7 @@ def saturating_cost_moments(m: jax.Array, s: jax.Array, target: jax.Array, weigh
     eye = jnp.eye(m.shape[0], dtype=s.dtype)
 
     def r(k):
-        x, det = _solve_det(eye + k * s @ w, d[:, None])
+        x, det = solve_det(eye + k * s @ w, d[:, None])
         return jnp.exp(-0.5 * k * (d @ w @ x[:, 0])) / jnp.sqrt(det)
 
     r1, r2 = r(1.0), r(2.0)

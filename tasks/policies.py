@@ -16,6 +16,8 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from models.linalg import solve_det
+
 RBF_SIGNAL_STD = 1.0
 """Signal std of the RBF policy's GP-mean parameterisation (fixed, as in PILCO)."""
 RBF_NOISE_STD = 0.01
@@ -73,7 +75,9 @@ def rbf_weights(theta: RBFParams) -> jax.Array:
 
     K is the SE kernel (signal std ``RBF_SIGNAL_STD``) of the centres under each control's
     length-scales; ``sn = RBF_NOISE_STD``. Depends on theta only, so under ``vmap`` over
-    particles it is computed once.
+    particles it is computed once. The solve is elementwise Gauss-Jordan (``models.linalg``):
+    ``jacfwd`` through it (``estimators.base.prepared``) and ``vmap`` over seeds never batch a
+    LAPACK call.
     """
 
     def one_output(log_ell, y):
@@ -81,7 +85,7 @@ def rbf_weights(theta: RBFParams) -> jax.Array:
         sq = jnp.sum((scaled[:, None, :] - scaled[None, :, :]) ** 2, axis=-1)
         gram = RBF_SIGNAL_STD**2 * jnp.exp(-0.5 * sq)
         gram = gram + RBF_NOISE_STD**2 * jnp.eye(gram.shape[0], dtype=gram.dtype)
-        return jax.scipy.linalg.solve(gram, y, assume_a="pos")
+        return solve_det(gram, y[:, None])[0][:, 0]
 
     return jax.vmap(one_output, in_axes=(0, 1))(theta.log_lengthscales, theta.targets)
 
@@ -135,7 +139,7 @@ def rbf_policy(
         return u_max_arr.astype(f.dtype) * saturate(rbf_preactivation(net, f))
 
     def moments(net, m, S):
-        from models import moment_matching  # the policy module stays free of model imports
+        from models import moment_matching  # imported here: moment_matching imports this module
 
         return saturated_moments(moment_matching.rbf_policy_moments(net, m, S), u_max_arr.astype(m.dtype))
 

@@ -16,6 +16,7 @@ from typing import ClassVar
 import jax.numpy as jnp
 import numpy as np
 
+from models.linalg import solve_det
 from tasks.base import Task, check_vector
 from tasks.forms import SaturatingCost, TrigLinearMap
 from tasks.policies import Policy, linear_policy
@@ -126,7 +127,7 @@ class Unicycle(Task):
         check_vector("z (ODE state)", z, 12)
         check_vector("u (control)", u, 2)
         A, b = _equations_of_motion(z, u)
-        accelerations = -jnp.linalg.solve(A, b)
+        accelerations = -solve_det(A, b[:, None])[0][:, 0]  # elementwise: vmap never batches LAPACK
         phi, dpsiw = z[8], z[2]
         contact_velocity = rw * dpsiw * jnp.stack([jnp.cos(phi), jnp.sin(phi)])
         return jnp.concatenate([accelerations, contact_velocity, z[:5]])

@@ -1,0 +1,110 @@
+"""Tests of models/linalg.py: the solves against numpy, their derivatives against finite
+differences, and the structural guard against the jaxlib 0.10 CPU deadlock: no program the
+learning experiment runs may contain a LAPACK call with batch dimensions (float64, fixed seeds).
+"""
+
+import dataclasses
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import estimators
+import tasks
+from estimators.base import task_problem
+from harness.episodic import evaluate_policy, policy_optimiser
+from models import gp
+from models.linalg import cholesky, solve_det, solve_lower, solve_lower_t
+from tasks.rollout import run_episode
+
+jax.config.update("jax_enable_x64", True)
+
+
+def random_spd(key, n):
+    a = jax.random.normal(key, (n, n))
+    return a @ a.T + n * jnp.eye(n)
+
+
+@pytest.mark.parametrize("n", [5, 20])  # unrolled and looped elimination
+def test_solve_det_matches_numpy_and_differentiates(n):
+    a = jax.random.normal(jax.random.key(0), (n, n)) + 3.0 * np.sqrt(n) * jnp.eye(n)  # well conditioned
+    b = jax.random.normal(jax.random.key(1), (n, 3))
+    x, det = jax.jit(solve_det)(a, b)
+    np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(det, np.linalg.det(a), rtol=1e-10)
+    # pivoting: a zero leading entry is no problem
+    swapped = jnp.array([[0.0, 2.0], [3.0, 1.0]])
+    np.testing.assert_allclose(solve_det(swapped, jnp.eye(2))[0], np.linalg.inv(swapped), rtol=1e-14)
+    np.testing.assert_allclose(solve_det(swapped, jnp.eye(2))[1], -6.0, rtol=1e-14)
+    check_grads(solve_det, (a, b), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
+    batched = jax.vmap(solve_det, in_axes=(None, 1))(a, b[:, :, None])[0]
+    np.testing.assert_allclose(batched[..., 0].T, x, rtol=1e-12, atol=1e-14)
+    with pytest.raises(ValueError, match=r"a \(n, n\) and b \(n, k\)"):
+        solve_det(a, b[:, 0])
+
+
+def test_cholesky_and_triangular_solves_batch_and_differentiate():
+    a = jax.vmap(random_spd, in_axes=(0, None))(jax.random.split(jax.random.key(2), 3), 6)
+    b = jax.random.normal(jax.random.key(3), (3, 6, 2))
+    chol = jax.vmap(cholesky)(a)
+    np.testing.assert_allclose(chol, np.linalg.cholesky(a), rtol=1e-12)
+    x = jax.vmap(solve_lower)(chol, b)
+    np.testing.assert_allclose(np.einsum("bij,bjk->bik", chol, x), b, rtol=1e-12, atol=1e-12)
+    xt = jax.vmap(solve_lower_t, in_axes=(None, 0))(chol[0], b)  # shared matrix, batched rhs
+    np.testing.assert_allclose(np.einsum("ji,bjk->bik", chol[0], xt), b, rtol=1e-12, atol=1e-12)
+
+    def spd_cholesky(m):  # the derivative of a symmetric input, as the callers use it
+        return cholesky(0.5 * (m + m.T))
+
+    check_grads(spd_cholesky, (a[0],), order=1, modes=("rev",), atol=1e-6, rtol=1e-6)
+    check_grads(solve_lower, (chol[0], b[0]), order=1, modes=("rev",), atol=1e-6, rtol=1e-6)
+    check_grads(solve_lower_t, (chol[0], b[0]), order=1, modes=("rev",), atol=1e-6, rtol=1e-6)
+    assert np.isnan(cholesky(-jnp.eye(2))).any()  # failure is NaN, for the callers to check
+
+
+# ----- the deadlock guard -------------------------------------------------------------------------
+def batched_lapack_calls(fn, *args) -> list[str]:
+    """Names of the LAPACK calls in ``jit(fn)``'s lowered program that carry batch dimensions
+    (the calls that deadlock jaxlib 0.10 on CPU when two run at once; see models/linalg.py)."""
+    text = jax.jit(fn).lower(*args).as_text()
+    return [re.search(r"@(\w+)", line).group(1) for line in text.splitlines()
+            if "lapack" in line and 'num_batch_dims = "0"' not in line]
+
+
+def test_the_guard_sees_a_batched_lapack_call():
+    a = jnp.stack([jnp.eye(3)] * 2)
+    assert batched_lapack_calls(jax.vmap(jnp.linalg.cholesky), a) == ["lapack_dpotrf_ffi"]
+    assert batched_lapack_calls(jax.vmap(cholesky), a) == []
+
+
+def batched_learning_programs(task_name: str, methods: list[str]):
+    """The programs one learning trial runs, each vmapped over two seeds as ``harness.learn``
+    runs them: the GP fit, each method's policy optimisation (2 steps, 4 particles), the real
+    trial, the evaluation. Yields (name, fn, args)."""
+    task = tasks.make(task_name)
+    seeds = jax.random.split(jax.random.key(0), 2)
+    problem = task_problem(task, gp.GPModel(task))
+    data = jax.tree.map(lambda x: jnp.broadcast_to(x, (2,) + x.shape), problem.model.empty_data(2 * task.horizon))
+    fit = jax.vmap(lambda d: gp.posterior(gp.train(d, num_steps=2).log_hyp, d))
+    yield "gp fit", fit, (data,)
+    problem = dataclasses.replace(problem, model_params=jax.eval_shape(fit, data))
+    theta = jax.vmap(problem.policy.init)(seeds)
+    for method in methods:
+        yield method, jax.vmap(policy_optimiser(method, 2, 4)), (problem, theta, seeds)
+    yield "trial", jax.vmap(lambda k, th: run_episode(task, k, problem.policy, th)), (seeds, theta)
+    yield "evaluation", jax.vmap(lambda k, th: evaluate_policy(task, problem.policy, th, k, 2)), (seeds, theta)
+
+
+@pytest.mark.parametrize("task_name, methods", [
+    ("cartpole", sorted(estimators.REGISTRY)),
+    ("unicycle", ["pilco", "gr", "tp"]),
+])
+def test_no_learning_program_batches_a_lapack_call(task_name, methods):
+    """Regression test for the learning runs that hung at 0 % CPU (GR's resampling Cholesky,
+    the RBF policy's weight solve under jacfwd, the unicycle's mass-matrix solve were batched)."""
+    found = {name: calls for name, fn, args in batched_learning_programs(task_name, methods)
+             if (calls := batched_lapack_calls(fn, *args))}
+    assert found == {}
