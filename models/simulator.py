@@ -4,7 +4,8 @@
 or the MuJoCo model under MJX), ``model_var = 0`` (the dynamics are known), ``noise_var`` =
 the task's observation-noise variance on the modelled state (``task.model_noise_std ** 2``),
 so that particles spread as the real system's observations do and likelihood-ratio
-estimators have a density to differentiate.
+estimators have a density to differentiate. A state the task calls fallen stays where it is
+(the real rollout's fall test), up to that noise.
 """
 
 from __future__ import annotations
@@ -46,7 +47,14 @@ class SimulatorModel:
         """One particle: s (S,), u (U,) -> Prediction of s_tp1, each (S,)."""
         check_vector("s (modelled state)", s, self.task.model_state_dim)
         check_vector("u (control)", u, self.task.control_dim)
-        z_tp1 = self.ode_step(self.task.from_model_state(s), u)
+        z = self.task.from_model_state(s)
+        # A fallen state is frozen, as on the real system (tasks/rollout.py): past the fall the
+        # equations no longer describe the system (the unicycle's wheel would pass through the
+        # floor) and can diverge. The step itself sees a safe state there, so that neither it
+        # nor its derivative is NaN behind the where.
+        fallen = self.task.fallen(z)
+        z_step = self.ode_step(jnp.where(fallen, self.task.init_mean.astype(z.dtype), z), u)
+        z_tp1 = jnp.where(fallen, z, z_step)
         mean = self.task.to_model_state(z_tp1).astype(s.dtype)
         noise_var = (self.task.model_noise_std**2).astype(s.dtype)
         return Prediction(mean, jnp.zeros_like(mean), noise_var)

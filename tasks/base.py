@@ -15,7 +15,7 @@ Every function here acts on ONE state; ``jax.vmap`` does the batch.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -34,16 +34,28 @@ def check_vector(name: str, value: jax.Array, size: int) -> None:
         )
 
 
-def rk4_step(f, z: jax.Array, u: jax.Array, dt: float, num_substeps: int) -> jax.Array:
-    """Integrate ``dz/dt = f(z, u)`` over ``dt`` with ``u`` held, by ``num_substeps`` RK4 steps."""
+def rk4_step(f, z: jax.Array, u: jax.Array, dt: float, num_substeps: int,
+             stop: Callable[[jax.Array], jax.Array] | None = None, safe_z: jax.Array | None = None) -> jax.Array:
+    """Integrate ``dz/dt = f(z, u)`` over ``dt`` with ``u`` held, by ``num_substeps`` RK4 steps.
+
+    ``stop(z) -> bool``: an event that ends the integration; the first substep state where it
+    holds is kept for the rest of ``dt``. The stopped state's would-be substep is computed at
+    ``safe_z`` instead, so that neither it nor its derivative can be NaN behind the ``where``.
+    """
     h = dt / num_substeps
 
-    def substep(z, _):
+    def rk4(z):
         k1 = f(z, u)
         k2 = f(z + 0.5 * h * k1, u)
         k3 = f(z + 0.5 * h * k2, u)
         k4 = f(z + h * k3, u)
-        return z + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
+        return z + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+    def substep(z, _):
+        if stop is None:
+            return rk4(z), None
+        stopped = stop(z)
+        return jnp.where(stopped, z, rk4(jnp.where(stopped, safe_z, z))), None
 
     z_next, _ = jax.lax.scan(substep, z, None, length=num_substeps)
     return z_next
@@ -114,10 +126,14 @@ class Task:
         raise NotImplementedError
 
     def step(self, z: jax.Array, u: jax.Array) -> jax.Array:
-        """The ODE state after one control period ``dt`` with ``u`` held (zero-order hold, RK4)."""
+        """The ODE state after one control period ``dt`` with ``u`` held (zero-order hold, RK4).
+        The integration stops at the first substep where ``fallen`` holds (the fall is an event:
+        past it the equations no longer describe the system; the unicycle's are singular where
+        the wheel lies flat)."""
         check_vector("z (ODE state)", z, self.state_dim)
         check_vector("u (control)", u, self.control_dim)
-        return rk4_step(self.derivative, z, u, self.dt, self.num_substeps)
+        return rk4_step(self.derivative, z, u, self.dt, self.num_substeps, stop=self.fallen,
+                        safe_z=self.init_mean.astype(z.dtype))
 
     def fallen(self, z: jax.Array) -> jax.Array:
         """True when a real rollout must stop (the system has fallen). Default: never."""

@@ -77,9 +77,12 @@ def transitions(task: Task, episode: Episode) -> tuple[jax.Array, jax.Array, jax
     """GP training data from an episode's observations.
 
     Returns inputs (T, D) ``gp_inputs(s_t, u_t)``, targets (T, S) ``s_tp1 - s_t`` (modelled
-    states of the observations) and mask (T,) = ``episode.alive``.
+    states of the observations) and mask (T,): ``episode.alive`` without the transition into a
+    fall, which is not a transition over one control period (``Task.step`` stops integrating
+    at the fall; near the unicycle's singularity its values are meaningless).
     """
     s = jax.vmap(task.to_model_state)(episode.observed)
     inputs = jax.vmap(task.gp_inputs)(s[:-1], episode.controls)
     targets = jax.vmap(task.gp_targets)(s[:-1], s[1:])
-    return inputs, targets, episode.alive
+    falls = jax.vmap(task.fallen)(episode.latent[1:])
+    return inputs, targets, episode.alive & ~falls
