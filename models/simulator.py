@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from models.prediction import Prediction
-from tasks.base import Task, check_vector
+from tasks.base import Task, check_vector, hold_where
 
 BACKENDS = ("jax", "mjx")
 
@@ -50,11 +50,9 @@ class SimulatorModel:
         z = self.task.from_model_state(s)
         # A fallen state is frozen, as on the real system (tasks/rollout.py): past the fall the
         # equations no longer describe the system (the unicycle's wheel would pass through the
-        # floor) and can diverge. The step itself sees a safe state there, so that neither it
-        # nor its derivative is NaN behind the where.
-        fallen = self.task.fallen(z)
-        z_step = self.ode_step(jnp.where(fallen, self.task.init_mean.astype(z.dtype), z), u)
-        z_tp1 = jnp.where(fallen, z, z_step)
+        # floor) and can diverge.
+        z_tp1 = hold_where(self.task.fallen(z), z, lambda z: self.ode_step(z, u),
+                           self.task.init_mean.astype(z.dtype))
         mean = self.task.to_model_state(z_tp1).astype(s.dtype)
         noise_var = (self.task.model_noise_std**2).astype(s.dtype)
         return Prediction(mean, jnp.zeros_like(mean), noise_var)

@@ -34,13 +34,19 @@ def check_vector(name: str, value: jax.Array, size: int) -> None:
         )
 
 
+def hold_where(stopped: jax.Array, z: jax.Array, step: Callable[[jax.Array], jax.Array],
+               safe_z: jax.Array) -> jax.Array:
+    """``z`` where ``stopped``, else ``step(z)``. Where stopped, ``step`` sees ``safe_z``
+    instead, so that neither it nor its derivative can be NaN behind the ``where``."""
+    return jnp.where(stopped, z, step(jnp.where(stopped, safe_z, z)))
+
+
 def rk4_step(f, z: jax.Array, u: jax.Array, dt: float, num_substeps: int,
              stop: Callable[[jax.Array], jax.Array] | None = None, safe_z: jax.Array | None = None) -> jax.Array:
     """Integrate ``dz/dt = f(z, u)`` over ``dt`` with ``u`` held, by ``num_substeps`` RK4 steps.
 
     ``stop(z) -> bool``: an event that ends the integration; the first substep state where it
-    holds is kept for the rest of ``dt``. The stopped state's would-be substep is computed at
-    ``safe_z`` instead, so that neither it nor its derivative can be NaN behind the ``where``.
+    holds is kept for the rest of ``dt`` (``hold_where``, with ``safe_z``).
     """
     h = dt / num_substeps
 
@@ -54,8 +60,7 @@ def rk4_step(f, z: jax.Array, u: jax.Array, dt: float, num_substeps: int,
     def substep(z, _):
         if stop is None:
             return rk4(z), None
-        stopped = stop(z)
-        return jnp.where(stopped, z, rk4(jnp.where(stopped, safe_z, z))), None
+        return hold_where(stop(z), z, rk4, safe_z), None
 
     z_next, _ = jax.lax.scan(substep, z, None, length=num_substeps)
     return z_next
