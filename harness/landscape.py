@@ -14,9 +14,9 @@ One key, the same at every delta (the fixed seed), draws the particles. At each 
 - the finite-time Lyapunov exponent of the same particles (``harness.lyapunov``) beside RP's
   variance (trace of the variance of its mean gradient, from the particle spread);
 - (e)-(f) at ``slice_deltas``: V(s_1) = E[sum_{t=1..T} c(s_t) | s_1] over a 2-D slice of the
-  first state (two named dimensions; the others at the mean of p(s_1)), each grid point
-  averaged over ``slice_particles`` fixed-seed particles, over a box of ``box_stds`` standard
-  deviations of p(s_1) (estimated from the particles).
+  first state (two named dimensions, by default the task's ``value_slice_dims``; the others at
+  the mean of p(s_1)), each grid point averaged over ``slice_particles`` fixed-seed particles,
+  over a box of ``box_stds`` standard deviations of p(s_1) (estimated from the particles).
 
 Rows are appended to ``landscape_{task}_{model}.csv`` as each delta finishes (a rerun resumes);
 the heatmaps go to ``landscape_{task}_{model}_slices.npz``; the figure and markdown beside.
@@ -56,7 +56,7 @@ class Args(scenario_lib.ExperimentArgs):
     delta_max: float = 1.5
     points: int = 31
     fd_step: float = 0.1
-    slice_dims: str = "x,theta"
+    slice_dims: str = ""
     slice_deltas: str = "0,1.5"
     slice_particles: int = 4
     grid: int = 41
@@ -67,12 +67,17 @@ class Args(scenario_lib.ExperimentArgs):
         scenario_lib.check_model(self.model)
         scenario_lib.check_estimators(str_list(self.estimators))
         names = tasks.make(self.task).model_state_names
-        dims = str_list(self.slice_dims)
+        dims = self.slice_names
         if len(dims) != 2 or not set(dims) <= set(names):
             raise ValueError(f"slice_dims must name two of the modelled state's dimensions {list(names)}, "
                              f"got {self.slice_dims!r}")
         if self.points < 2 or self.particles < 2 or self.grid < 2 or self.fd_step <= 0:
             raise ValueError("points, particles and grid must be >= 2 and fd_step > 0")
+
+    @property
+    def slice_names(self) -> list[str]:
+        """The two dimensions of the value slices ("": the task's ``value_slice_dims``)."""
+        return str_list(self.slice_dims) or list(tasks.make(self.task).value_slice_dims)
 
     @property
     def deltas(self) -> np.ndarray:
@@ -127,7 +132,7 @@ def value_slice(args: Args, where: scenario_lib.Setting, delta: float, key: jax.
     """V(s_1) over the 2-D slice at ``delta``: the two axes (grid,) and the values (grid, grid)."""
     problem, theta = where.problem, where.theta(delta)
     names = tasks.make(args.task).model_state_names
-    i, j = (names.index(n) for n in str_list(args.slice_dims))
+    i, j = (names.index(n) for n in args.slice_names)
     s0, eps = draw_noise(problem, key, args.particles, theta_dtype(theta))
     s1 = rollout(problem, per_particle(problem.policy.prepare(theta), args.particles), s0, eps[:1]).states[1]
     centre, spread = jnp.mean(s1, axis=0), jnp.std(s1, axis=0)
@@ -173,7 +178,7 @@ def run(args: Args) -> tuple[pd.DataFrame, dict]:
     stored = dict(np.load(slices_path)) if os.path.exists(slices_path) else {}
     for delta in float_list(args.slice_deltas):
         name = f"{args.scenario_name}_seed{args.seed}_P{args.particles}_n{args.slice_particles}_grid{args.grid}_" \
-               f"box{args.box_stds:g}_{args.slice_dims}_delta{delta:g}"
+               f"box{args.box_stds:g}_{','.join(args.slice_names)}_delta{delta:g}"
         if name + "_values" not in stored:
             print(f"value slice at delta={delta:g} ({args.grid}x{args.grid} starts)", file=sys.stderr, flush=True)
             for part, array in value_slice(args, where, delta, key).items():
@@ -252,7 +257,7 @@ def write_report(args: Args, rows: pd.DataFrame, slices: dict) -> None:
     for ax in top[1 + len(names):]:
         ax.axis("off")
     panel = ord("b") + len(names)
-    dim_i, dim_j = str_list(args.slice_dims)
+    dim_i, dim_j = args.slice_names
     for ax, (delta, s) in zip(bottom, slices.items()):
         image = ax.pcolormesh(s["axis_j"], s["axis_i"], s["values"], shading="auto", cmap="viridis")
         fig.colorbar(image, ax=ax)
@@ -284,7 +289,7 @@ def write_report(args: Args, rows: pd.DataFrame, slices: dict) -> None:
         "",
         f"Command: `python -m harness.landscape --task {args.task} --model {args.model} --estimators {args.estimators} "
         f"--particles {args.particles} --delta-max {args.delta_max:g} --points {args.points} --fd-step {args.fd_step:g} "
-        f"--slice-dims {args.slice_dims} --slice-deltas {args.slice_deltas} --slice-particles {args.slice_particles} "
+        f"--slice-dims {','.join(args.slice_names)} --slice-deltas {args.slice_deltas} --slice-particles {args.slice_particles} "
         f"--grid {args.grid} --box-stds {args.box_stds:g} --seed {args.seed} {args.scenario_flags()}`",
         "",
         *scenario_lib.model_labels(args.task, [args.model]),

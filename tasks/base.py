@@ -34,11 +34,12 @@ def check_vector(name: str, value: jax.Array, size: int) -> None:
         )
 
 
-def hold_where(stopped: jax.Array, z: jax.Array, step: Callable[[jax.Array], jax.Array],
-               safe_z: jax.Array) -> jax.Array:
+def hold_where(stopped: jax.Array, z: Any, step: Callable[[Any], Any], safe_z: Any) -> Any:
     """``z`` where ``stopped``, else ``step(z)``. Where stopped, ``step`` sees ``safe_z``
-    instead, so that neither it nor its derivative can be NaN behind the ``where``."""
-    return jnp.where(stopped, z, step(jnp.where(stopped, safe_z, z)))
+    instead, so that neither it nor its derivative can be NaN behind the ``where``. ``z`` and
+    ``safe_z``: arrays or pytrees of one structure (e.g. an MJX ``Data``)."""
+    select = lambda a, b: jax.tree.map(lambda x, y: jnp.where(stopped, x, y), a, b)  # noqa: E731
+    return select(z, step(select(safe_z, z)))
 
 
 def rk4_step(f, z: jax.Array, u: jax.Array, dt: float, num_substeps: int,
@@ -85,6 +86,9 @@ class Task:
     """Set when the MuJoCo model only approximates ``derivative``; printed with its results."""
     substep_dt: ClassVar[float] = 0.01
     """Length (s) of one RK4 sub-step; a control period of 0.1 s gets 10 sub-steps."""
+    value_slice_dims: ClassVar[tuple[str, str]]
+    """Two modelled-state dimensions whose 2-D slice of the value function
+    ``harness.landscape`` draws by default."""
     presets: ClassVar[dict[str, dict[str, Any]]]
 
     preset: str

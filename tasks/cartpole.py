@@ -39,6 +39,7 @@ class CartPole(Task):
     control_names: ClassVar[tuple[str, ...]] = ("force",)
     u_max: ClassVar[tuple[float, ...]] = (10.0,)
     mjcf: ClassVar[str] = os.path.join(os.path.dirname(__file__), "cartpole.xml")
+    value_slice_dims: ClassVar[tuple[str, str]] = ("x", "theta")
     presets: ClassVar[dict] = {
         "pipps": dict(dt=0.1, horizon=30, noise_k=1.0, cost_type="angle", num_random_trials=1,
                       num_learned_trials=15, num_basis=50),

@@ -37,7 +37,7 @@ from jax.extend.core import ClosedJaxpr, Jaxpr, jaxpr_as_fun
 from mujoco import mjx
 from mujoco.mjx._src import solver as mjx_solver
 
-from tasks.base import Task, check_vector
+from tasks.base import Task, check_vector, hold_where
 
 StepFn = Callable[[jax.Array, jax.Array], jax.Array]
 
@@ -166,14 +166,23 @@ class MjxDynamics:
 
 
 def _raw_step(task: Task, model: mjx.Model, data0: mjx.Data, num_substeps: int, dtype):
-    """The untraced control step; trace it under ``jax.enable_x64`` matching ``dtype``."""
+    """The untraced control step; trace it under ``jax.enable_x64`` matching ``dtype``.
+
+    As ``task.step``, the substeps stop at the first fallen state (``task.fallen``), which is
+    kept for the rest of the period (``hold_where``, stepping the task's initial mean in its
+    place): past the fall the model no longer describes the system (the unicycle's joint
+    chain locks at |theta| = pi/2, where its yaw and pitch axes align)."""
+
+    def with_state(z, u):
+        qpos, qvel = task.to_mujoco(z)
+        return data0.replace(qpos=qpos.astype(dtype), qvel=qvel.astype(dtype), ctrl=u.astype(dtype))
 
     def step(z, u):
-        qpos, qvel = task.to_mujoco(z)
-        d = data0.replace(qpos=qpos.astype(dtype), qvel=qvel.astype(dtype), ctrl=u.astype(dtype))
+        d, safe = with_state(z, u), with_state(task.init_mean.astype(dtype), u)
 
         def substep(d, _):
-            return mjx.step(model, d), None
+            fallen = task.fallen(task.from_mujoco(d.qpos, d.qvel))
+            return hold_where(fallen, d, lambda d: mjx.step(model, d), safe), None
 
         d, _ = jax.lax.scan(substep, d, None, length=num_substeps)
         return task.from_mujoco(d.qpos, d.qvel).astype(dtype)

@@ -115,6 +115,7 @@ class Unicycle(Task):
     mjcf_label: ClassVar[str | None] = (
         "APPROXIMATE MuJoCo unicycle: a wheel in soft frictional contact with the floor, "
         "not the ideal rolling of the reference equations")
+    value_slice_dims: ClassVar[tuple[str, str]] = ("theta", "psif")  # roll and pitch
     substep_dt: ClassVar[float] = 0.005  # 10 RK4 sub-steps per 0.1 s miss the reference by 5e-5; 20 by 3e-6
     presets: ClassVar[dict] = {
         "pipps": dict(dt=0.1, horizon=20, noise_k=1.0, num_random_trials=5, num_learned_trials=30),

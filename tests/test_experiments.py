@@ -122,6 +122,14 @@ def test_landscape_rejects_an_unknown_slice_dimension():
         landscape.main(["--slice-dims", "x,phi"])
 
 
+def test_landscape_slices_default_to_the_tasks_dimensions():
+    from harness import landscape
+
+    assert landscape.Args(task="cartpole").slice_names == ["x", "theta"]
+    assert landscape.Args(task="unicycle").slice_names == ["theta", "psif"]
+    assert landscape.Args(task="unicycle", slice_dims="xc,yc").slice_names == ["xc", "yc"]
+
+
 def test_compare_runs_end_to_end(tmp_path):
     from harness import compare
 

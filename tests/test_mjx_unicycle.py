@@ -93,20 +93,47 @@ def test_mjx_unicycle_agrees_with_ideal_rolling_at_small_torques(task, batched_s
     assert np.max(err) > 10 * IDEAL_TOL
 
 
-def test_mjx_unicycle_gradient_is_finite_and_matches_finite_differences(task, dynamics, states):
+@pytest.fixture(scope="module")
+def horizon_loss(task, dynamics):
+    """``loss(inputs)``: the squared modelled state after HORIZON MJX steps from
+    ``inputs = [z0 (12,), u_1, ..., u_HORIZON (2 each)]``."""
+
     def loss(inputs):
         z0, us = inputs[:12], inputs[12:].reshape(HORIZON, 2)
         z_final, _ = jax.lax.scan(lambda z, u: (dynamics.step(z, u), None), z0, us)
         return jnp.sum(task.to_model_state(z_final) ** 2)
 
+    return loss
+
+
+@pytest.fixture(scope="module")
+def horizon_grad(horizon_loss):
+    return jax.jit(jax.grad(horizon_loss))
+
+
+def test_mjx_unicycle_gradient_is_finite_and_matches_finite_differences(states, horizon_loss, horizon_grad):
     controls = jnp.array([[2.0, 10.0], [-3.0, -8.0], [1.0, 15.0]])
     inputs = jnp.concatenate([states[0], controls.ravel()])
-    grad = np.asarray(jax.jit(jax.grad(loss))(inputs))
+    grad = np.asarray(horizon_grad(inputs))
     assert np.all(np.isfinite(grad))
     offsets = FD_STEP * np.concatenate([np.eye(inputs.size), -np.eye(inputs.size)])
-    values = np.asarray(jax.jit(jax.vmap(loss))(inputs + offsets))
+    values = np.asarray(jax.jit(jax.vmap(horizon_loss))(inputs + offsets))
     fd = (values[: inputs.size] - values[inputs.size:]) / (2 * FD_STEP)
     np.testing.assert_allclose(grad, fd, rtol=0.0, atol=FD_TOL * np.max(np.abs(fd)))
+
+
+
+def test_mjx_unicycle_stops_at_the_fall(task, batched_step, horizon_grad):
+    """As ``Task.step`` (tests/test_policies_rollout.py, the same state): the MJX sub-steps
+    stop at the first fallen state. Without the stop this state's step was NaN (the joint
+    chain locks at |theta| = pi/2), and so was every gradient through it."""
+    z = jnp.array([3.6119, -1.2832, -32.687, 5.0106, 2.9720, -1.5249, 1.4479, 1.4503, -1.4476, 0.0, 0.1302, 0.0])
+    u = jnp.array([9.9333, 43.543])
+    z1 = np.asarray(batched_step(jnp.tile(z, (NUM_STATES, 1)), jnp.tile(u, (NUM_STATES, 1))))[0]
+    assert np.all(np.isfinite(z1)) and bool(task.fallen(z1))
+    held = np.asarray(batched_step(jnp.tile(z1, (NUM_STATES, 1)), jnp.tile(u, (NUM_STATES, 1))))[0]
+    np.testing.assert_allclose(held, z1, rtol=0, atol=1e-12)  # a fallen state stays put
+    assert np.all(np.isfinite(np.asarray(horizon_grad(jnp.concatenate([z, jnp.tile(u, HORIZON)])))))
 
 
 @pytest.mark.slow
