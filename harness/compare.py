@@ -156,10 +156,12 @@ def write_report(args: Args, rows: pd.DataFrame, reference_rse: float) -> None:
     """The markdown: settings, the reference's quality, the table and what it says."""
     models = str_list(args.models)
     wide = rows.pivot_table(index=["estimator", "particles"], columns="model",
-                            values=["variance", "cosine", "cosine_ci", "rel_error", "rel_error_ci", "cosine_of_mean"])
+                            values=["variance", "cosine", "cosine_ci", "rel_error", "rel_error_ci", "cosine_of_mean",
+                                    "nonfinite_estimates"])
     table = pd.DataFrame(index=wide.index)
     for model in models:
         table[f"variance {model}"] = wide["variance"][model].map("{:.3g}".format)
+        table[f"non-finite {model}"] = wide["nonfinite_estimates"][model].map(lambda n: f"{n:.0f}/{args.repeats}")
     learned = [m for m in models if m == "gp"]
     true = [m for m in models if m != "gp"]
     for model in true:
@@ -184,7 +186,8 @@ def write_report(args: Args, rows: pd.DataFrame, reference_rse: float) -> None:
         f"{args.reference_particles} particles on the {args.reference_model} dynamics; its relative standard error "
         f"(|standard error| / |g*|) is {reference_rse:.3f}, which bounds how close to 1 a cosine can be measured.",
         f"- Per cell: {args.repeats} independent estimates; variance = trace of their covariance; cosine and relative "
-        "error are means over the estimates with 95 % intervals; 'cosine of mean' is that of their average.",
+        "error are means over the estimates with 95 % intervals; 'cosine of mean' is that of their average; "
+        "'non-finite': estimates with a NaN or infinite component, left out of every statistic.",
         "",
         *findings(args, rows),
         table.reset_index().to_markdown(index=False, disable_numparse=True),
