@@ -61,6 +61,10 @@ def cartpole_problem():
     return task, task_problem(task, gp.GPModel(task), post), theta
 
 
+MC_CHUNK = 10_000
+"""Particles per vmapped chunk of the Monte Carlo rollouts (the memory bound)."""
+
+
 def monte_carlo_and_moments(problem, theta, steps: int, num: int = 200_000):
     """Per step: (MC mean, MC sd) of the particle rollout (key 1) and (mean, sd) from PILCO."""
 
@@ -71,7 +75,9 @@ def monte_carlo_and_moments(problem, theta, steps: int, num: int = 200_000):
         m, S = jnp.asarray(problem.moment_forms.init_mean), jnp.asarray(problem.moment_forms.init_cov)
         out = []
         for t in range(steps):
-            zeta = jax.vmap(next_state_distribution, in_axes=(None, None, 0))(problem, net, s)
+            # in chunks of MC_CHUNK particles: the GP's kernel rows for all of them at once
+            # (particles x points x outputs, float64) took the suite's memory past 20 GB
+            zeta = jax.lax.map(lambda x: next_state_distribution(problem, net, x), s, batch_size=MC_CHUNK)
             s = zeta.mean + zeta.std * jax.random.normal(jax.random.fold_in(key, t), s.shape)
             m, S = propagate(problem, net, m, S)
             out.append((s.mean(0), s.std(0), m, jnp.sqrt(jnp.diag(S))))
