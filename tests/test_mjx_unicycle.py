@@ -122,13 +122,11 @@ def test_mjx_unicycle_gradient_is_finite_and_matches_finite_differences(states, 
     np.testing.assert_allclose(grad, fd, rtol=0.0, atol=FD_TOL * np.max(np.abs(fd)))
 
 
-
-def test_mjx_unicycle_stops_at_the_fall(task, batched_step, horizon_grad):
+def test_mjx_unicycle_stops_at_the_fall(task, batched_step, horizon_grad, unicycle_falling_state):
     """As ``Task.step`` (tests/test_policies_rollout.py, the same state): the MJX sub-steps
     stop at the first fallen state. Without the stop this state's step was NaN (the joint
     chain locks at |theta| = pi/2), and so was every gradient through it."""
-    z = jnp.array([3.6119, -1.2832, -32.687, 5.0106, 2.9720, -1.5249, 1.4479, 1.4503, -1.4476, 0.0, 0.1302, 0.0])
-    u = jnp.array([9.9333, 43.543])
+    z, u = unicycle_falling_state
     z1 = np.asarray(batched_step(jnp.tile(z, (NUM_STATES, 1)), jnp.tile(u, (NUM_STATES, 1))))[0]
     assert np.all(np.isfinite(z1)) and bool(task.fallen(z1))
     held = np.asarray(batched_step(jnp.tile(z1, (NUM_STATES, 1)), jnp.tile(u, (NUM_STATES, 1))))[0]

@@ -182,9 +182,7 @@ def test_pilco_on_the_unicycle_first_step_matches_monte_carlo():
     """A GP on 200 random unicycle transitions near upright, the linear policy with weights
     of 0.3 sd: PILCO's first-step moments against 100k particles of the same model, within
     0.05 marginal sd (means) and 5 % (sds), the cart-pole's bounds; its J and gradient are
-    finite. 100k, not 200k: the GP's prediction for 200k particles against 200 points and 10
-    outputs peaked at 22 GB (float64 kernel rows); the Monte Carlo error of 100k (0.003 sd) is
-    still far inside the bounds."""
+    finite. 100k particles (their Monte Carlo error, 0.003 sd, is far inside the bounds)."""
     task = tasks.make("unicycle")
     k_z, k_u, k_theta = jax.random.split(jax.random.key(0), 3)
     z = jnp.concatenate([0.3 * jax.random.normal(k_z, (200, 7)), 0.1 * jax.random.normal(k_z, (200, 5))], axis=1)

@@ -104,15 +104,14 @@ def test_unicycle_fall_freezes_episode():
     assert bool(mask[:first].all()) and not bool(mask[first:].any())
 
 
-def test_unicycle_step_stops_at_the_fall():
+def test_unicycle_step_stops_at_the_fall(unicycle_falling_state):
     """The ideal-rolling equations are singular where the wheel lies flat (det A -> 0 as
     |theta| -> pi/2). From this state (met in a variance run on the true dynamics) the
     integration through the fall diverged to NaN within one control period. ``Task.step`` stops
     at the first fallen substep: the result is finite and fallen, a fallen state stays put, and
     the step's Jacobian is finite."""
     task = tasks.make("unicycle")
-    z = jnp.array([3.6119, -1.2832, -32.687, 5.0106, 2.9720, -1.5249, 1.4479, 1.4503, -1.4476, 0.0, 0.1302, 0.0])
-    u = jnp.array([9.9333, 43.543])
+    z, u = unicycle_falling_state
     step = jax.jit(task.step)  # one compilation for both states
     z1 = step(z, u)
     assert np.isfinite(z1).all() and bool(task.fallen(z1))
