@@ -42,21 +42,36 @@ def hold_where(stopped: jax.Array, z: Any, step: Callable[[Any], Any], safe_z: A
     return select(z, step(select(safe_z, z)))
 
 
+# RK4's stages: each evaluates f at z + FEED * h * (previous stage's slope); the step adds
+# h / 6 * sum(WEIGHT * slope).
+RK4_FEED = (0.0, 0.5, 0.5, 1.0)
+RK4_WEIGHT = (1.0, 2.0, 2.0, 1.0)
+
+
 def rk4_step(f, z: jax.Array, u: jax.Array, dt: float, num_substeps: int,
              stop: Callable[[jax.Array], jax.Array] | None = None, safe_z: jax.Array | None = None) -> jax.Array:
     """Integrate ``dz/dt = f(z, u)`` over ``dt`` with ``u`` held, by ``num_substeps`` RK4 steps.
 
     ``stop(z) -> bool``: an event that ends the integration; the first substep state where it
     holds is kept for the rest of ``dt`` (``hold_where``, with ``safe_z``).
+
+    The four stages are a ``lax.scan``, so ``f`` is traced once, not four times, with the
+    same arithmetic as unrolled stages. For the unicycle's long closed-form derivative this
+    cuts the compile time of a reverse-mode gradient 3.5-6 fold (one step: 188 s -> 30 s;
+    100 particles x 10 steps: 319 s -> 92 s) at about 15 % more run time.
     """
     h = dt / num_substeps
+    stages = jnp.array([RK4_FEED, RK4_WEIGHT], dtype=z.dtype).T  # (4, 2)
 
     def rk4(z):
-        k1 = f(z, u)
-        k2 = f(z + 0.5 * h * k1, u)
-        k3 = f(z + 0.5 * h * k2, u)
-        k4 = f(z + h * k3, u)
-        return z + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        def stage(carry, feed_weight):
+            slope, weighted_sum = carry
+            slope = f(z + (feed_weight[0] * h) * slope, u)
+            return (slope, weighted_sum + feed_weight[1] * slope), None
+
+        zero = jnp.zeros_like(z)
+        (_, weighted_sum), _ = jax.lax.scan(stage, (zero, zero), stages)
+        return z + (h / 6.0) * weighted_sum
 
     def substep(z, _):
         if stop is None:

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 import tasks
-from tasks import unicycle
+from tasks import base, unicycle
 from conftest import TESTDATA
 
 
@@ -38,6 +38,18 @@ def test_step_matches_reference(name):
     task, z, u, _, z_next = reference(name)
     got = jax.jit(jax.vmap(task.step))(z, u)
     np.testing.assert_allclose(got, z_next, rtol=0, atol=1e-5)
+
+
+def test_rk4_step_is_the_fourth_order_taylor_map_on_a_linear_ode():
+    """For dz/dt = A z one RK4 step is exactly z + hA z + (hA)^2 z / 2 + (hA)^3 z / 6 +
+    (hA)^4 z / 24: checks every stage's feed and weight (to rounding, 1e-13)."""
+    a = jax.random.normal(jax.random.key(0), (3, 3))
+    z = jnp.array([0.3, -1.2, 0.7])
+    h, substeps = 0.05, 3
+    taylor = sum(jnp.linalg.matrix_power(h * a, k) / math.factorial(k) for k in range(5))
+    want = jnp.linalg.matrix_power(taylor, substeps) @ z
+    got = base.rk4_step(lambda z, u: a @ z, z, jnp.zeros(1), h * substeps, substeps)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
 
 
 def test_reference_columns_are_in_ode_order():
