@@ -131,23 +131,27 @@ def run(args: Args) -> tuple[pd.DataFrame, float]:
 
 
 def findings(args: Args, rows: pd.DataFrame) -> list[str]:
-    """Per estimator: the learned/true variance ratios and the cosines at the largest P."""
+    """Per estimator: the learned/true variance ratios and the cosines at the largest P that
+    every model has (a model may lack the dearer cells)."""
     lines = ["## What the comparison shows", ""]
     models = str_list(args.models)
     true = [m for m in models if m != "gp"]
-    for name, group in rows.groupby("estimator"):
+    for name, group in rows[rows.model.isin(models)].groupby("estimator"):
         by_model = group.set_index(["model", "particles"]).sort_index()
+        variance = {m: group[group.model == m].set_index("particles").variance for m in models}
         parts = []
         if "gp" in models:
             for model in true:
-                ratio = by_model.loc["gp"].variance / by_model.loc[model].variance
-                parts.append(f"variance gp / {model} {ratio.min():.2g}-{ratio.max():.2g} over P")
-        top = int(group.particles.max())
-        for model in models:
-            cell = by_model.loc[(model, top)]
-            parts.append(f"cosine with g* at P = {top} on {model}: {cell.cosine:.3f} +- {cell.cosine_ci:.3f} "
-                         f"(of the mean: {cell.cosine_of_mean:.3f})")
-        lines.append(f"- {name}: " + "; ".join(parts) + ".")
+                ratio = (variance["gp"] / variance[model]).dropna()
+                if len(ratio):
+                    parts.append(f"variance gp / {model} {ratio.min():.2g}-{ratio.max():.2g} over P = "
+                                 f"{', '.join(map(str, ratio.index))}")
+        shared = set.intersection(*(set(variance[m].index) for m in models))
+        for model in models if shared else []:
+            cell = by_model.loc[(model, max(shared))]
+            parts.append(f"cosine with g* at P = {max(shared)} on {model}: {cell.cosine:.3f} +- "
+                         f"{cell.cosine_ci:.3f} (of the mean: {cell.cosine_of_mean:.3f})")
+        lines.append(f"- {name}: " + ("; ".join(parts) + "." if parts else "no particle count measured on every model."))
     lines.append("")
     return lines
 

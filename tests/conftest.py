@@ -4,6 +4,7 @@ and a persistent compilation cache so that MJX compiles once per machine."""
 import os
 
 import jax
+import jax.numpy as jnp
 import pytest
 
 jax.config.update("jax_enable_x64", True)
@@ -21,7 +22,5 @@ TESTDATA = os.path.join(SHARED, "testdata")
 def unicycle_falling_state():
     """``(z (12,), u (2,))``: a unicycle state from a real run that falls (|theta| passes
     pi/2) within one control period under these controls."""
-    import jax.numpy as jnp
-
     z = jnp.array([3.6119, -1.2832, -32.687, 5.0106, 2.9720, -1.5249, 1.4479, 1.4503, -1.4476, 0.0, 0.1302, 0.0])
     return z, jnp.array([9.9333, 43.543])

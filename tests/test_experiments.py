@@ -99,6 +99,18 @@ def test_alignment_statistics_on_known_cases():
     assert opposite["rel_error_ci"] == pytest.approx(1.96 * np.std([2, 3], ddof=1) / np.sqrt(2))
 
 
+def test_compare_findings_use_the_largest_particle_count_every_model_has():
+    from harness.compare import Args, findings
+
+    cells = [("gp", 10, 4.0), ("gp", 300, 1.0), ("jax", 10, 2.0)]  # jax lacks P = 300
+    rows = pd.DataFrame([dict(estimator="rp", model=m, particles=p, variance=v, cosine=0.1 * p, cosine_ci=0.01,
+                              cosine_of_mean=0.5) for m, p, v in cells])
+    (line,) = [line for line in findings(Args(models="gp,jax"), rows) if line.startswith("- rp")]
+    assert "variance gp / jax 2-2 over P = 10" in line and "at P = 10 on jax: 1.000" in line
+    (alone,) = [line for line in findings(Args(models="gp,mjx"), rows) if line.startswith("- rp")]
+    assert alone == "- rp: no particle count measured on every model."
+
+
 @pytest.mark.parametrize("model", ["gp", "jax", pytest.param("mjx", marks=pytest.mark.slow)])
 def test_landscape_runs_end_to_end_and_resumes(tmp_path, capsys, model):
     from harness import landscape
