@@ -121,6 +121,7 @@ def run(args: Args) -> tuple[pd.DataFrame, float]:
                                  jax.random.fold_in(seed_key, 2))
         stats = {**cell_statistics(rep), **alignment(rep.grads, reference)}
         table.append({**row_key, **stats})
+        jax.clear_caches()  # no later cell reuses this program; see README "Choices" (memory maps)
         print(f"[{index + 1}/{len(cells)}] {model:3s} {name:7s} P={num_particles:5d}: variance {stats['variance']:.3e}, "
               f"cosine {stats['cosine']:.3f} +- {stats['cosine_ci']:.3f}, rel. error {stats['rel_error']:.3g}",
               file=sys.stderr, flush=True)

@@ -24,3 +24,12 @@ def unicycle_falling_state():
     pi/2) within one control period under these controls."""
     z = jnp.array([3.6119, -1.2832, -32.687, 5.0106, 2.9720, -1.5249, 1.4479, 1.4503, -1.4476, 0.0, 0.1302, 0.0])
     return z, jnp.array([9.9333, 43.543])
+
+
+@pytest.fixture(autouse=True, scope="module")
+def release_compiled_programs():
+    """Each test module leaves JAX's in-memory caches empty: every compiled program holds
+    memory mappings until then, and a process may hold 65530 (Linux's vm.max_map_count; past
+    it XLA's compiler fails or segfaults). The suite runs in one process."""
+    yield
+    jax.clear_caches()
