@@ -121,7 +121,7 @@ def run(args: Args) -> tuple[pd.DataFrame, float]:
                                  jax.random.fold_in(seed_key, 2))
         stats = {**cell_statistics(rep), **alignment(rep.grads, reference)}
         table.append({**row_key, **stats})
-        jax.clear_caches()  # no later cell reuses this program; see README "Choices" (memory maps)
+        jax.clear_caches()  # no later cell reuses its programs (README: memory mappings)
         print(f"[{index + 1}/{len(cells)}] {model:3s} {name:7s} P={num_particles:5d}: variance {stats['variance']:.3e}, "
               f"cosine {stats['cosine']:.3f} +- {stats['cosine_ci']:.3f}, rel. error {stats['rel_error']:.3g}",
               file=sys.stderr, flush=True)
@@ -177,6 +177,8 @@ def write_report(args: Args, rows: pd.DataFrame, reference_rse: float) -> None:
         table[f"rel. error {model}"] = [f"{c:.3g} +- {h:.2g}" for c, h in
                                         zip(wide["rel_error"][model], wide["rel_error_ci"][model])]
         table[f"cosine of mean {model}"] = wide["cosine_of_mean"][model].map("{:.3f}".format)
+    for model in models:  # cells measured on some models only
+        table.loc[wide["variance"][model].isna(), [c for c in table.columns if c.endswith(f" {model}")]] = "not run"
     lines = [
         f"# Learned model against true dynamics: {args.task}",
         "",

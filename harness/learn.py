@@ -178,7 +178,7 @@ def run(args: Args):
         print(f"[batch {index + 1}/{len(batches)}] {method}, repeats {missing}", file=sys.stderr, flush=True)
         for row in run_experiments(args, method, missing):
             table.append({**row_key(method, row["repeat"]), **row})
-        jax.clear_caches()  # each trial compiled its own programs; see README "Choices" (memory maps)
+        jax.clear_caches()  # each trial compiled its own programs (README: memory mappings)
     rows = table.read()
     current = np.array([s == args.settings_name(m) for s, m in zip(rows.settings, rows.method)], bool)
     return rows[current & rows.method.isin(str_list(args.methods)) & (rows.repeat < args.repeats)
