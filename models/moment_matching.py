@@ -27,6 +27,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from models.gp import GPPosterior
 from models.linalg import solve_det
@@ -65,6 +66,9 @@ def gp_moments(inputs: jax.Array, beta: jax.Array, log_hyp: jax.Array, m: jax.Ar
         Q_ab,ij = k_a(x_i, m) k_b(x_j, m) |R_ab|^-1/2 exp(1/2 z_ij^T R_ab^-1 s z_ij),
             R_ab = s (Lambda_a^-1 + Lambda_b^-1) + I,  z_ij = Lambda_a^-1 nu_i + Lambda_b^-1 nu_j
         cov_ab = beta_a^T Q_ab beta_b - mean_a mean_b  [+ (a = b) (sf_a^2 - tr(k_inv_a Q_aa))]
+
+    Q_ba = Q_ab^T, so only the E (E + 1) / 2 pairs a <= b are computed (E = 10, N = 200:
+    value and gradient 0.37-0.42 of the time of all E^2 pairs).
 
     ``k_inv`` (E, N, N) = K_a^-1 adds the model uncertainty of a full GP (PILCO's gp0: the
     covariance of the latent function values, noise not included); without it the GPs are
@@ -106,13 +110,17 @@ def gp_moments(inputs: jax.Array, beta: jax.Array, log_hyp: jax.Array, m: jax.Ar
         return jnp.exp(ea[:, None] + eb[None, :] + ut @ w.T - 0.5 * jnp.log(det_g))
 
     mean, io = jax.vmap(mean_io)(ell, log_sf2, beta)
-    over_b = jax.vmap(q_matrix, in_axes=(None, None, 0, 0))
-    q = jax.vmap(over_b, in_axes=(0, 0, None, None))(ell, log_sf2, ell, log_sf2)  # (E, E, N, N)
-    cov = jnp.einsum("ai,abij,bj->ab", beta, q, beta) - jnp.outer(mean, mean)
+    num_outputs = beta.shape[0]
+    pair_a, pair_b = np.triu_indices(num_outputs)  # Q_ba = Q_ab^T: only the pairs a <= b
+    q = jax.vmap(q_matrix)(ell[pair_a], log_sf2[pair_a], ell[pair_b], log_sf2[pair_b])  # (pairs, N, N)
+    upper = jnp.einsum("pi,pij,pj->p", beta[pair_a], q, beta[pair_b])  # beta_a^T Q_ab beta_b
+    second = jnp.zeros((num_outputs, num_outputs), upper.dtype).at[pair_a, pair_b].set(upper)
+    second = second.at[pair_b, pair_a].set(upper)
+    cov = second - jnp.outer(mean, mean)
     if k_inv is not None:
-        diag = jnp.arange(beta.shape[0])
-        cov = cov + jnp.diag(jnp.exp(log_sf2) - jnp.sum(k_inv * q[diag, diag], axis=(1, 2)))
-    return Moments(mean, 0.5 * (cov + cov.T), io.T)  # Q_ba = Q_ab^T up to round-off
+        q_diag = q[np.flatnonzero(pair_a == pair_b)]  # Q_aa (E, N, N)
+        cov = cov + jnp.diag(jnp.exp(log_sf2) - jnp.sum(k_inv * q_diag, axis=(1, 2)))
+    return Moments(mean, cov, io.T)
 
 
 @jax.jit
