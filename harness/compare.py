@@ -148,10 +148,12 @@ def findings(args: Args, rows: pd.DataFrame) -> list[str]:
                     parts.append(f"variance gp / {model} {ratio.min():.2g}-{ratio.max():.2g} over P = "
                                  f"{', '.join(map(str, ratio.index))}")
         shared = set.intersection(*(set(variance[m].index) for m in models))
-        for model in models if shared else []:
-            cell = by_model.loc[(model, max(shared))]
-            parts.append(f"cosine with g* at P = {max(shared)} on {model}: {cell.cosine:.3f} +- "
-                         f"{cell.cosine_ci:.3f} (of the mean: {cell.cosine_of_mean:.3f})")
+        if shared:
+            top = max(shared)
+            for model in models:
+                cell = by_model.loc[(model, top)]
+                parts.append(f"cosine with g* at P = {top} on {model}: {cell.cosine:.3f} +- "
+                             f"{cell.cosine_ci:.3f} (of the mean: {cell.cosine_of_mean:.3f})")
         lines.append(f"- {name}: " + ("; ".join(parts) + "." if parts else "no particle count measured on every model."))
     lines.append("")
     return lines
