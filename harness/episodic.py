@@ -131,6 +131,16 @@ def evaluate_policy(task: Task, policy, theta, key: jax.Array, num_runs: int) ->
     return episodes.total_cost
 
 
+class RunState(NamedTuple):
+    """A learning run between two trials: ``trials_done`` (random and learned), theta after the
+    last learned trial (None before the first) and the data gathered so far; enough to resume
+    the run exactly, since every key is derived from the run's key and the trial index."""
+
+    trials_done: int
+    theta: Any
+    data: gp.GPData
+
+
 class TrialRecord(NamedTuple):
     """One real-system trial of a learning run: ``trial`` (0-based over all trials), whether it
     was ``learned`` (else random), the episode, and theta after it (None for random trials)."""
@@ -144,7 +154,7 @@ class TrialRecord(NamedTuple):
 def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
                  optimise: Callable[[Problem, Any, jax.Array], Any], gp_steps: int,
                  on_trial: Callable[[TrialRecord, gp.GPData], None] = lambda record, data: None,
-                 batched: bool = False, trim_model: bool = False):
+                 batched: bool = False, trim_model: bool = False, resume: RunState | None = None):
     """The paper's episodic loop: the task's random trials, then ``num_learned`` times: fit the
     GP to all data (``gp_steps`` L-BFGS steps), ``theta = optimise(problem with the GP, theta,
     key)``, one real trial, add its data. Keys: random trial r ``fold_in(key, r)``, theta0
@@ -160,21 +170,28 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
     ``trim_model``: optimise on the posterior cut to the rows held, rounded up to whole
     episodes (``gp.truncate``): prediction costs O(rows^2) instead of O(capacity^2), for one
     compilation of the optimiser per distinct size; worth it when the optimisation is long.
+
+    ``resume``: continue from that state (the data and theta ``on_trial`` saw after trial
+    ``trials_done - 1``) instead of starting afresh; the trials after it are the same
+    computation as in an uninterrupted run.
     """
     over_seeds = jax.vmap if batched else (lambda f: f)
     seeds_fold_in = jax.vmap(jax.random.fold_in, in_axes=(0, None)) if batched else jax.random.fold_in
     num_seeds = key.shape if batched else ()
-    data = problem.model.empty_data(data_capacity(task, task.num_random_trials + num_learned))
-    data = jax.tree.map(lambda x: jnp.broadcast_to(x, num_seeds + x.shape), data)
+    if resume is None:
+        data = problem.model.empty_data(data_capacity(task, task.num_random_trials + num_learned))
+        resume = RunState(0, None, jax.tree.map(lambda x: jnp.broadcast_to(x, num_seeds + x.shape), data))
+    data, theta = jax.tree.map(jnp.asarray, (resume.data, resume.theta))  # it may hold numpy arrays
     add = over_seeds(functools.partial(add_episode, task))
-    for trial in range(task.num_random_trials):
+    for trial in range(resume.trials_done, task.num_random_trials):
         episode = over_seeds(functools.partial(run_episode, task))(seeds_fold_in(key, trial))
         data = add(data, episode)
         on_trial(TrialRecord(trial, False, episode, None), data)
-    theta = over_seeds(problem.policy.init)(seeds_fold_in(key, 10_000))
+    if theta is None:
+        theta = over_seeds(problem.policy.init)(seeds_fold_in(key, 10_000))
     fit = over_seeds(lambda d: gp.posterior(gp.train(d, num_steps=gp_steps).log_hyp, d))
     policy_episode = over_seeds(lambda k, th: run_episode(task, k, problem.policy, th))
-    for trial in range(num_learned):
+    for trial in range(max(resume.trials_done - task.num_random_trials, 0), num_learned):
         posterior = gp.check_posterior(fit(data))
         if trim_model:
             whole_episodes = -(-int(np.max(np.asarray(data.num_valid))) // task.horizon) * task.horizon

@@ -13,7 +13,9 @@ the real system (evaluation only; their data are not used). Repeat r uses seed `
 A method's repeats run ``batch`` at a time, vmapped over their seeds (one compiled program
 per batch; the optimiser works on the GP trimmed to the rows held). Every trial of a batch's
 experiments is appended to ``learn_{task}_{cost}_k{k}.csv`` when the batch ends; a rerun
-skips finished experiments. Progress (batch, trial, optimiser step) goes to stderr. The
+skips finished experiments. Between trials the batch's state (data, theta, rows so far) is
+saved under ``{out}/.cache/``, so a rerun of an interrupted batch continues after its last
+finished trial (with the same repeats and settings). Progress (batch, trial, optimiser step) goes to stderr. The
 report (``harness.learn_report``) regenerates every table and figure from the CSV alone.
 """
 
@@ -31,8 +33,8 @@ import numpy as np
 import tasks
 from estimators.base import task_problem
 from harness.cli import parse, str_list
-from harness.episodic import evaluate_policy, learning_run, policy_optimiser
-from harness.records import ResultTable
+from harness.episodic import RunState, evaluate_policy, learning_run, policy_optimiser
+from harness.records import ResultTable, load_pickle, save_pickle
 from models import gp
 
 METHODS = {
@@ -123,9 +125,17 @@ class Args:
         return os.path.join(self.out, f"learn_{self.task}_{cost}_k{self.noise_k:g}")
 
 
+def checkpoint_path(args: Args, method: str, repeats: list[int]) -> str:
+    """Where the batch of ``method`` over ``repeats`` saves its state between trials."""
+    seeds = "-".join(str(args.seed + r) for r in repeats)
+    name = f"{os.path.basename(args.stem)}_{method}_{args.settings_name(method)}_seeds{seeds}.pkl"
+    return os.path.join(args.out, ".cache", "learn", name)
+
+
 def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
-    """One learning run per repeat, all vmapped together (``learning_run(batched=True)``);
-    returns a row per repeat and trial (progress on stderr)."""
+    """One learning run per repeat, all vmapped together (``learning_run(batched=True)``),
+    continuing from the batch's checkpoint if there is one; returns a row per repeat and trial
+    (progress on stderr)."""
     task, settings = args.make_task(), args.settings
     name, overrides = METHODS[method]
     steps = settings["pilco_steps"] if name == "pilco" else settings["optimiser_steps"]
@@ -134,7 +144,13 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     keys = jnp.stack([jax.random.key(args.seed + r) for r in repeats])
     evaluate = jax.vmap(lambda th, k: evaluate_policy(task, problem.policy, th, k, num_runs=settings["eval_runs"]))
     num_trials = task.num_random_trials + settings["learned_trials"]
-    rows, start = [], time.perf_counter()
+    checkpoint = checkpoint_path(args, method, repeats)
+    saved = load_pickle(checkpoint) or dict(state=None, rows=[])
+    rows, resume = saved["rows"], saved["state"]
+    if resume is not None:
+        print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: resuming after trial {resume.trials_done}/{num_trials}"
+              f" ({checkpoint})", file=sys.stderr, flush=True)
+    start = time.perf_counter() - (rows[-1]["seconds"] if rows else 0.0)
 
     def on_trial(record, data):
         if record.learned:
@@ -149,12 +165,13 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
                              trial_return=float(returns[i]), eval_mean=float(scores[i].mean()),
                              eval_std=float(scores[i].std(ddof=1)) if scores.shape[1] > 1 else np.nan,
                              data_points=int(num_valid[i]), seconds=seconds))
+        save_pickle(dict(state=RunState(record.trial + 1, record.theta, data), rows=rows), checkpoint)
         evaluation = f", evaluation mean {scores.mean():.2f}" if record.learned else ""
         print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: trial {record.trial + 1}/{num_trials},"
               f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s)", file=sys.stderr, flush=True)
 
     learning_run(task, problem, keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
-                 batched=True, trim_model=True)
+                 batched=True, trim_model=True, resume=resume)
     return rows
 
 
@@ -178,6 +195,7 @@ def run(args: Args):
         print(f"[batch {index + 1}/{len(batches)}] {method}, repeats {missing}", file=sys.stderr, flush=True)
         for row in run_experiments(args, method, missing):
             table.append({**row_key(method, row["repeat"]), **row})
+        os.remove(checkpoint_path(args, method, missing))  # its rows are in the table now
         jax.clear_caches()  # each trial compiled its own programs (README: memory mappings)
     rows = table.read()
     current = np.array([s == args.settings_name(m) for s, m in zip(rows.settings, rows.method)], bool)

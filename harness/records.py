@@ -1,15 +1,36 @@
-"""Result tables that survive interruption: one CSV row per finished measurement.
+"""Results that survive interruption: one CSV row per finished measurement, and pickled states.
 
 Every experiment appends a row as soon as a measurement is done, and on a rerun skips the
 measurements whose key (the values of ``key_columns``) is already in the file, so an
-interrupted run loses nothing it computed.
+interrupted run loses nothing it computed. Long computations that yield their rows only at
+the end (a batch of learning runs) save their state between steps with ``save_pickle``.
 """
 
 from __future__ import annotations
 
 import os
+import pickle
+from typing import Any
 
+import jax
 import pandas as pd
+
+
+def save_pickle(obj: Any, path: str) -> None:
+    """Pickle ``obj`` (its JAX arrays as numpy) to ``path`` atomically: the file, once there, is
+    whole, even if the process dies while writing."""
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    with open(path + ".tmp", "wb") as f:
+        pickle.dump(jax.device_get(obj), f)
+    os.replace(path + ".tmp", path)
+
+
+def load_pickle(path: str) -> Any:
+    """What ``save_pickle`` wrote to ``path``, or None if there is nothing there."""
+    if not os.path.exists(path):
+        return None
+    with open(path, "rb") as f:
+        return pickle.load(f)
 
 
 class ResultTable:
@@ -19,7 +40,9 @@ class ResultTable:
         self.path = path
         self.key_columns = list(key_columns)
         os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-        self._done = {self._key(row) for row in self.read().to_dict("records")}
+        existing = self.read()
+        self._columns = list(existing.columns) if os.path.exists(path) else None
+        self._done = {self._key(row) for row in existing.to_dict("records")}
 
     def _key(self, row: dict) -> tuple[str, ...]:
         missing = [c for c in self.key_columns if c not in row]
@@ -38,6 +61,13 @@ class ResultTable:
         return self._key(key) in self._done
 
     def append(self, row: dict) -> None:
-        """Write one row now (the header with the first row)."""
-        pd.DataFrame([row]).to_csv(self.path, mode="a", header=not os.path.exists(self.path), index=False)
+        """Write one row now (the header with the first row; later rows in the header's column
+        order, whatever the order of their keys)."""
+        if self._columns is None:
+            self._columns = list(row)
+        elif set(row) != set(self._columns):
+            raise ValueError(f"row columns {sorted(row)} differ from {self.path}'s {sorted(self._columns)}; "
+                             "write these results to another --out folder")
+        pd.DataFrame([row])[self._columns].to_csv(self.path, mode="a", header=not os.path.exists(self.path),
+                                                  index=False)
         self._done.add(self._key(row))

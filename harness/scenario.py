@@ -17,7 +17,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import pickle
 import sys
 from typing import Any, NamedTuple
 
@@ -30,6 +29,7 @@ import estimators
 import tasks
 from estimators.base import Problem, task_problem
 from harness.episodic import learning_run, policy_optimiser
+from harness.records import load_pickle, save_pickle
 from models import gp
 from models.simulator import SimulatorModel
 
@@ -94,14 +94,11 @@ def cache_path(args: ScenarioArgs, cache_dir: str) -> str:
 def load_or_build(args: ScenarioArgs, cache_dir: str) -> Scenario:
     """The cached scenario for ``args`` if there is one, else build and cache it."""
     path = cache_path(args, cache_dir)
-    if os.path.exists(path):
-        with open(path, "rb") as f:
-            return jax.tree.map(jax.numpy.asarray, pickle.load(f))
+    cached = load_pickle(path)
+    if cached is not None:
+        return jax.tree.map(jax.numpy.asarray, cached)
     scenario = build(args)
-    os.makedirs(cache_dir, exist_ok=True)
-    with open(path + ".tmp", "wb") as f:
-        pickle.dump(jax.tree.map(np.asarray, scenario), f)
-    os.replace(path + ".tmp", path)
+    save_pickle(scenario, path)
     return scenario
 
 

@@ -83,6 +83,19 @@ def test_learning_time_measurement_runs(tmp_path):
     assert "paper-setting" in "\n".join(bench_learning.report_lines(table))
 
 
+def test_result_table_writes_rows_in_its_header_order_and_skips_written_keys(tmp_path):
+    from harness.records import ResultTable
+
+    path = str(tmp_path / "table.csv")
+    ResultTable(path, ["cell"]).append(dict(cell="a", variance=1.5, seconds=2.0))
+    table = ResultTable(path, ["cell"])  # a rerun
+    assert table.has(dict(cell="a")) and not table.has(dict(cell="b"))
+    table.append(dict(seconds=4.0, cell="b", variance=3.5))  # keys in another order
+    assert pd.read_csv(path).to_dict("list") == dict(cell=["a", "b"], variance=[1.5, 3.5], seconds=[2.0, 4.0])
+    with pytest.raises(ValueError, match="another --out folder"):
+        table.append(dict(cell="c", variance=1.0))
+
+
 def test_alignment_statistics_on_known_cases():
     from harness.compare import alignment
 

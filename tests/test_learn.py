@@ -45,6 +45,37 @@ def test_learning_runs_end_to_end_and_an_interrupted_run_resumes(tmp_path, monke
     assert (tmp_path / "learn_cartpole_angle_k1.png").stat().st_size > 1000
 
 
+def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_path, monkeypatch, capsys):
+    """The batch's state is saved after every trial; a rerun continues from it and gives the
+    rows of an uninterrupted run (the same computation: equal to round-off), then removes it."""
+    argv = TINY[:2] + ["--repeats", "2", "--learned-trials", "2"] + TINY[6:] + ["--methods", "tp"]
+    learn.main(argv + ["--out", str(tmp_path / "whole")])
+    whole = pd.read_csv(tmp_path / "whole" / "learn_cartpole_angle_k1.csv")
+
+    real, calls = learn.evaluate_policy, []
+
+    def cut_at_the_second_evaluation(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # during learned trial 2: learned trial 1 is saved
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(learn, "evaluate_policy", cut_at_the_second_evaluation)
+    out = tmp_path / "cut"
+    with pytest.raises(KeyboardInterrupt):
+        learn.main(argv + ["--out", str(out)])
+    assert not (out / "learn_cartpole_angle_k1.csv").exists()
+    monkeypatch.setattr(learn, "evaluate_policy", real)
+    capsys.readouterr()
+    learn.main(argv + ["--out", str(out)])
+    progress = capsys.readouterr().err
+    assert "tp repeats 0-1: resuming after trial 2/3" in progress and "trial 2/3," not in progress
+    resumed = pd.read_csv(out / "learn_cartpole_angle_k1.csv")
+    columns = ["repeat", "trial", "learned", "trial_return", "eval_mean", "data_points"]
+    pd.testing.assert_frame_equal(resumed[columns], whole[columns], check_exact=False, rtol=1e-9)
+    assert not list((out / ".cache" / "learn").iterdir())  # the checkpoint is gone with its rows in the table
+
+
 def test_learning_runs_on_the_unicycle(tmp_path):
     """5 random trials, the linear policy and the fall test (a fallen run's rows are masked)."""
     learn.main(TINY + ["--task", "unicycle", "--methods", "pilco,tp", "--out", str(tmp_path)])
