@@ -14,9 +14,9 @@ A method's repeats run ``batch`` at a time, vmapped over their seeds (one compil
 per batch; the optimiser works on the GP trimmed to the rows held). Every trial of a batch's
 experiments is appended to ``learn_{task}_{cost}_k{k}.csv`` when the batch ends; a rerun
 skips finished experiments. Between trials the batch's state (data, theta, rows so far) is
-saved under ``{out}/.cache/``, so a rerun of an interrupted batch continues after its last
-finished trial (with the same repeats and settings). Progress (batch, trial, optimiser step) goes to stderr. The
-report (``harness.learn_report``) regenerates every table and figure from the CSV alone.
+saved under ``{out}/.cache/learn/``, so a rerun of an interrupted batch continues after its
+last finished trial (with the same repeats, settings and precision). Progress (batch, trial,
+optimiser step) goes to stderr. The report (``harness.learn_report``) regenerates every table and figure from the CSV alone.
 """
 
 from __future__ import annotations
@@ -128,7 +128,8 @@ class Args:
 def checkpoint_path(args: Args, method: str, repeats: list[int]) -> str:
     """Where the batch of ``method`` over ``repeats`` saves its state between trials."""
     seeds = "-".join(str(args.seed + r) for r in repeats)
-    name = f"{os.path.basename(args.stem)}_{method}_{args.settings_name(method)}_seeds{seeds}.pkl"
+    precision = "f64" if args.x64 else "f32"
+    name = f"{os.path.basename(args.stem)}_{method}_{args.settings_name(method)}_{precision}_seeds{seeds}.pkl"
     return os.path.join(args.out, ".cache", "learn", name)
 
 
