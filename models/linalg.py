@@ -18,7 +18,8 @@ per tangent). Hence two kinds of routine here:
   vjp); forward mode (jvp, jacfwd) is not available through them.
 - ``solve_det`` (Gauss-Jordan elimination in elementwise ops, no LAPACK call) for small systems:
   the unicycle's 5 x 5 mass matrix, moment matching's D x D matrices, the RBF policy's B x B
-  Gram matrix. Every transformation applies (vmap, grad, jvp, jacfwd).
+  Gram matrix; ``cholesky_small`` and ``solve_triangular_small`` likewise, for MJX's nv x nv
+  factorisations (tasks/mjx_dynamics.py). Every transformation applies (vmap, grad, jvp, jacfwd).
 """
 
 from __future__ import annotations
@@ -125,3 +126,39 @@ def solve_det(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
     ab = jnp.concatenate([a, b], axis=1)
     ab, det = jax.lax.fori_loop(0, n, eliminate, (ab, jnp.ones((), ab.dtype)), unroll=n <= UNROLL_MAX)
     return ab[:, n:] / jnp.diag(ab[:, :n])[:, None], det
+
+
+def cholesky_small(a: jax.Array) -> jax.Array:
+    """Lower Cholesky factor L (n, n), L L^T = a, of a symmetric positive definite a (n, n), by
+    columns: ``v = a[:, j] - L L[j]``, ``L[j, j] = sqrt(v[j])``, ``L[i, j] = v[i] / L[j, j]``
+    (i > j); zero above the diagonal, NaN where a is not positive definite. Elementwise ops
+    (unrolled for n <= ``UNROLL_MAX``): for small n."""
+    a = jnp.asarray(a)
+    n = a.shape[0]
+    if a.shape != (n, n):
+        raise ValueError(f"cholesky_small needs a square matrix; got {a.shape}")
+    rows = jnp.arange(n)
+
+    def column(j, chol):
+        v = a[:, j] - chol @ chol[j]  # chol[j] holds L[j, :j] so far, zeros after
+        pivot = jnp.sqrt(v[j])
+        return chol.at[:, j].set(jnp.where(rows > j, v / pivot, jnp.where(rows == j, pivot, 0.0)))
+
+    return jax.lax.fori_loop(0, n, column, jnp.zeros_like(a), unroll=n <= UNROLL_MAX)
+
+
+def solve_triangular_small(t: jax.Array, b: jax.Array, lower: bool) -> jax.Array:
+    """``t^-1 b`` for a triangular t (n, n) (its other triangle is ignored) and b (n,) or
+    (n, k), by substitution row by row (forward for ``lower``, else backward). Elementwise ops
+    (unrolled for n <= ``UNROLL_MAX``): for small n."""
+    n = t.shape[0]
+    if t.shape != (n, n) or b.shape[0] != n or b.ndim > 2:
+        raise ValueError(f"solve_triangular_small needs t (n, n) and b (n,) or (n, k); got {t.shape} and {b.shape}")
+    t = jnp.tril(t) if lower else jnp.triu(t)
+    columns = jnp.asarray(b).reshape(n, -1)
+
+    def substitute(step, x):
+        i = step if lower else n - 1 - step
+        return x.at[i].set((columns[i] - t[i] @ x) / t[i, i])  # rows not yet solved are zero in x
+
+    return jax.lax.fori_loop(0, n, substitute, jnp.zeros_like(columns), unroll=n <= UNROLL_MAX).reshape(b.shape)

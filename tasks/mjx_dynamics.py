@@ -35,8 +35,11 @@ import mujoco
 import numpy as np
 from jax.extend.core import ClosedJaxpr, Jaxpr, jaxpr_as_fun
 from mujoco import mjx
+from mujoco.mjx._src import forward as mjx_forward
+from mujoco.mjx._src import smooth as mjx_smooth
 from mujoco.mjx._src import solver as mjx_solver
 
+from models import linalg
 from tasks.base import Task, check_vector, hold_where
 
 StepFn = Callable[[jax.Array, jax.Array], jax.Array]
@@ -98,28 +101,56 @@ class _Overlay:
         return getattr(self._module, name)
 
 
-@contextlib.contextmanager
-def _bounded_constraint_solver(iterations: int):
-    """Within the block, MJX's constraint solver runs its iterations in a ``lax.scan`` of length
-    ``iterations`` that turns into no-ops once converged, instead of a ``lax.while_loop``.
+def _cho_factor(a, lower=False, overwrite_a=False, check_finite=True):
+    """``jax.scipy.linalg.cho_factor`` without LAPACK: (factor, lower), the factor's other
+    triangle zero."""
+    del overwrite_a, check_finite
+    chol = linalg.cholesky_small(a)
+    return (chol if lower else chol.T), lower
 
-    The results are those of the while loop (and of MuJoCo in C: at most ``opt.iterations``,
-    stopping at ``opt.tolerance``), but reverse-mode differentiable: JAX cannot transpose a
-    while loop, so MJX itself differentiates only single-iteration solves, which do not
-    converge on contacts (tasks/unicycle.xml). Only the solver module's ``jax`` is swapped, and
-    only while the step is traced; MJX's own scan-based loop helper does the iterating (the fix
-    proposed upstream, google-deepmind/mujoco#2259).
+
+def _cho_solve(c_and_lower, b, overwrite_b=False, check_finite=True):
+    """``jax.scipy.linalg.cho_solve`` without LAPACK: ``a^-1 b`` from ``_cho_factor``'s output."""
+    del overwrite_b, check_finite
+    c, lower = c_and_lower
+    chol = c if lower else c.T
+    return linalg.solve_triangular_small(chol.T, linalg.solve_triangular_small(chol, b, lower=True), lower=False)
+
+
+@contextlib.contextmanager
+def _traceable_mjx(iterations: int):
+    """Within the block (while the step is traced), MJX's modules see two replacements.
+
+    1. The constraint solver runs its iterations in a ``lax.scan`` of length ``iterations``
+       that turns into no-ops once converged, instead of a ``lax.while_loop``. The results are
+       those of the while loop (and of MuJoCo in C: at most ``opt.iterations``, stopping at
+       ``opt.tolerance``), but reverse-mode differentiable: JAX cannot transpose a while loop,
+       so MJX itself differentiates only single-iteration solves, which do not converge on
+       contacts (tasks/unicycle.xml). MJX's own scan-based loop helper does the iterating (the
+       fix proposed upstream, google-deepmind/mujoco#2259).
+    2. ``jax.scipy.linalg.cho_factor`` and ``cho_solve`` (the nv x nv mass matrix and Newton's
+       Hessian) are the elementwise ``models.linalg`` routines. Under ``vmap`` over particles
+       the originals become batched LAPACK calls, which can deadlock jaxlib 0.10.2 on CPU
+       (``models/linalg.py``): a unicycle TP estimate at P = 300 through contact hung at 0 % CPU
+       inside two batched triangular solves.
+
+    Only the ``jax`` name of MJX's solver, smooth and forward modules is swapped.
     """
 
     def bounded_while_loop(cond_fun, body_fun, init_val):
         return mjx_solver._while_loop_scan(cond_fun, body_fun, init_val, iterations)
 
-    original = mjx_solver.jax
-    mjx_solver.jax = _Overlay(jax, lax=_Overlay(jax.lax, while_loop=bounded_while_loop))
+    scipy = _Overlay(jax.scipy, linalg=_Overlay(jax.scipy.linalg, cho_factor=_cho_factor, cho_solve=_cho_solve))
+    replacements = {mjx_solver: _Overlay(jax, lax=_Overlay(jax.lax, while_loop=bounded_while_loop), scipy=scipy),
+                    mjx_smooth: _Overlay(jax, scipy=scipy), mjx_forward: _Overlay(jax, scipy=scipy)}
+    originals = {module: module.jax for module in replacements}
+    for module, replacement in replacements.items():
+        module.jax = replacement
     try:
         yield
     finally:
-        mjx_solver.jax = original
+        for module, original in originals.items():
+            module.jax = original
 
 
 def _clear_jax_caches() -> None:
@@ -226,7 +257,7 @@ def mjx_dynamics(task: Task, dtype=jnp.float64) -> MjxDynamics:
     other_mode = x64 != jax.config.read("jax_enable_x64")
     if other_mode:
         _clear_jax_caches()
-    with jax.enable_x64(x64), _bounded_constraint_solver(int(mj_model.opt.iterations)):
+    with jax.enable_x64(x64), _traceable_mjx(int(mj_model.opt.iterations)):
         model = _cast_floats(mjx.put_model(mj_model, impl="jax"), dtype)
         data0 = _cast_floats(mjx.make_data(model), dtype)
         jaxpr = jax.make_jaxpr(_raw_step(task, model, data0, num_substeps, dtype))(

@@ -17,7 +17,7 @@ import tasks
 from estimators.base import task_problem
 from harness.episodic import evaluate_policy, policy_optimiser
 from models import gp
-from models.linalg import cholesky, solve_det, solve_lower, solve_lower_t
+from models.linalg import cholesky, cholesky_small, solve_det, solve_lower, solve_lower_t, solve_triangular_small
 from tasks.rollout import run_episode
 
 jax.config.update("jax_enable_x64", True)
@@ -65,6 +65,23 @@ def test_cholesky_and_triangular_solves_batch_and_differentiate():
     assert np.isnan(cholesky(-jnp.eye(2))).any()  # failure is NaN, for the callers to check
 
 
+@pytest.mark.parametrize("n", [5, 12])  # unrolled and looped
+def test_small_cholesky_and_triangular_solves_match_lapack_and_differentiate(n):
+    a = random_spd(jax.random.key(0), n)
+    b = jax.random.normal(jax.random.key(1), (n, 3))
+    chol = jax.jit(cholesky_small)(a)
+    np.testing.assert_allclose(chol, np.linalg.cholesky(np.asarray(a)), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(solve_triangular_small(chol, b, lower=True),
+                               jax.scipy.linalg.solve_triangular(chol, b, lower=True), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(solve_triangular_small(chol.T, b[:, 0], lower=False),
+                               jax.scipy.linalg.solve_triangular(chol.T, b[:, 0], lower=False), rtol=1e-12, atol=1e-13)
+    check_grads(lambda m: cholesky_small(m @ m.T + n * jnp.eye(n)), (a,), order=1, modes=("fwd", "rev"),
+                atol=1e-6, rtol=1e-6)
+    check_grads(lambda t, y: solve_triangular_small(t, y, lower=True), (chol, b), order=1, modes=("fwd", "rev"),
+                atol=1e-6, rtol=1e-6)
+    assert np.isnan(cholesky_small(-jnp.eye(2))).any()  # not positive definite: NaN
+
+
 # ----- the deadlock guard -------------------------------------------------------------------------
 def batched_lapack_calls(fn, *args) -> list[str]:
     """Names of the LAPACK calls in ``jit(fn)``'s lowered program that carry batch dimensions
@@ -78,6 +95,19 @@ def test_the_guard_sees_a_batched_lapack_call():
     a = jnp.stack([jnp.eye(3)] * 2)
     assert batched_lapack_calls(jax.vmap(jnp.linalg.cholesky), a) == ["lapack_dpotrf_ffi"]
     assert batched_lapack_calls(jax.vmap(cholesky), a) == []
+
+
+@pytest.mark.parametrize("task_name", ["cartpole", "unicycle"])
+def test_the_mjx_step_batches_no_lapack_call(task_name):
+    """Regression test for a unicycle TP estimate through contact (P = 300) that hung at 0 % CPU
+    in two batched triangular solves: MJX's Cholesky factorisations, vmapped over particles."""
+    from tasks.mjx_dynamics import mjx_step_fn
+
+    task = tasks.make(task_name)
+    step = mjx_step_fn(task)
+    z, u = jnp.tile(task.init_mean, (3, 1)), jnp.zeros((3, task.control_dim))
+    assert batched_lapack_calls(jax.vmap(step), z, u) == []
+    assert batched_lapack_calls(jax.vmap(jax.grad(lambda z, u: jnp.sum(step(z, u) ** 2), argnums=(0, 1))), z, u) == []
 
 
 def batched_learning_programs(task_name: str, methods: list[str]):
