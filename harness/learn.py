@@ -16,7 +16,8 @@ experiments is appended to ``learn_{task}_{cost}_k{k}.csv`` when the batch ends;
 skips finished experiments. Between trials the batch's state (data, theta, rows so far) is
 saved under ``{out}/.cache/learn/``, so a rerun of an interrupted batch continues after its
 last finished trial (with the same repeats, settings and precision). Progress (batch, trial,
-optimiser step) goes to stderr. The report (``harness.learn_report``) regenerates every table and figure from the CSV alone.
+optimiser step) goes to stderr. The report (``harness.learn_report``) regenerates every table
+and figure from the CSV alone.
 """
 
 from __future__ import annotations

@@ -48,7 +48,7 @@ def test_learning_runs_end_to_end_and_an_interrupted_run_resumes(tmp_path, monke
 def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_path, monkeypatch, capsys):
     """The batch's state is saved after every trial; a rerun continues from it and gives the
     rows of an uninterrupted run (the same computation: equal to round-off), then removes it."""
-    argv = TINY[:2] + ["--repeats", "2", "--learned-trials", "2"] + TINY[6:] + ["--methods", "tp"]
+    argv = TINY + ["--repeats", "2", "--learned-trials", "2", "--methods", "tp"]  # the last value of a flag wins
     learn.main(argv + ["--out", str(tmp_path / "whole")])
     whole = pd.read_csv(tmp_path / "whole" / "learn_cartpole_angle_k1.csv")
 
