@@ -16,9 +16,9 @@ from estimators.total_propagation import TotalPropagation
 
 REGISTRY: dict[str, Callable[..., object]] = {
     "rp": lambda **kw: Reparameterisation(**kw),
-    "rp_fs": lambda noise_seed=0: FixedNoise(Reparameterisation(), noise_seed),
+    "rp_fs": lambda: FixedNoise(Reparameterisation()),
     "gr": lambda **kw: Reparameterisation(gaussian_resampling=True, **kw),
-    "gr_fs": lambda noise_seed=0: FixedNoise(Reparameterisation(gaussian_resampling=True), noise_seed),
+    "gr_fs": lambda: FixedNoise(Reparameterisation(gaussian_resampling=True)),
     "lr": lambda **kw: LikelihoodRatio("lr", **kw),
     "biw_lr": lambda **kw: LikelihoodRatio("biw_lr", **kw),
     "tp": lambda **kw: TotalPropagation(**kw),

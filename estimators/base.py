@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, ClassVar, NamedTuple
 
 import jax
 import jax.flatten_util
@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from models.prediction import Model
 from tasks.base import Task
-from tasks.policies import Policy
+from tasks.policies import Policy, identity
 
 
 @functools.partial(
@@ -192,8 +192,10 @@ def prepared(problem: Problem, theta):
     The map is the transposed Jacobian of ``prepare``, materialised once per estimate (forward
     mode) as a (net size, theta size) matrix, so that mapping many per-particle cotangents is
     one matmul rather than a batch of solves through the RBF weights (the cart-pole's RBF
-    network: 305 x 305).
+    network: 305 x 305). Where ``prepare`` is the identity the map is the identity, skipped.
     """
+    if problem.policy.prepare is identity:  # nothing to map (the direct RBF, the linear policy)
+        return theta, lambda net_grads, batch_dims=1: net_grads
     flat_theta, unravel_theta = jax.flatten_util.ravel_pytree(theta)
 
     def flat_prepare(x):
@@ -231,13 +233,14 @@ def theta_dtype(theta):
 
 @dataclasses.dataclass(frozen=True)
 class FixedNoise:
-    """PEGASUS: ``inner`` with its noise fixed by ``noise_seed`` for the whole optimisation,
-    whatever key it is called with. The objective becomes deterministic and the gradient
-    exact for it."""
+    """PEGASUS: ``inner`` with its noise fixed for a whole policy optimisation, so that the
+    objective is deterministic and the gradient exact for it. The estimate is ``inner``'s with
+    the key it is given; ``fixes_noise`` tells the optimiser (``harness.episodic``) to give the
+    optimisation's own key at every step rather than a fresh key per step. So the noise is
+    fixed within a trial's optimisation and differs across trials and repeats."""
 
     inner: Any
-    noise_seed: int = 0
+    fixes_noise: ClassVar[bool] = True
 
     def __call__(self, problem: Problem, theta, key: jax.Array, num_particles: int) -> Estimate:
-        del key  # the point of the estimator: the same noise at every call
-        return self.inner(problem, theta, jax.random.key(self.noise_seed), num_particles)
+        return self.inner(problem, theta, key, num_particles)

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from estimators.base import Estimate, Problem
-from models.form_moments import expected_cost, map_moments
+from models.form_moments import expected_cost, map_moments, policy_moments
 from tasks.forms import SaturatingCost, TrigLinearMap
 
 
@@ -45,7 +45,7 @@ def propagate(problem: Problem, net, m: jax.Array, S: jax.Array) -> tuple[jax.Ar
     """One step of the moment recursion: (m_t, S_t) -> (m_{t+1}, S_{t+1})."""
     forms: MomentForms = problem.moment_forms
     f = map_moments(forms.features, m, S)
-    u = problem.policy.moments(net, f.mean, f.cov)
+    u = policy_moments(problem.policy.form, net, f.mean, f.cov)
     cross = S @ f.io @ u.io  # cov(s, u)
     z_mean = jnp.concatenate([m, u.mean])
     z_cov = jnp.block([[S, cross], [cross.T, u.cov]])
@@ -74,8 +74,8 @@ def check_capabilities(problem: Problem) -> None:
     missing = []
     if problem.moment_forms is None:
         missing.append("the task's features and cost as forms (tasks.forms) and an initial distribution")
-    if problem.policy.moments is None:
-        missing.append("a policy with moments (the RBF network or the linear policy)")
+    if problem.policy.form is None:
+        missing.append("a policy with a form (tasks.forms.PolicyForm: the RBF network or the linear policy)")
     if not hasattr(problem.model, "next_state_moments"):
         missing.append(f"a model with next_state_moments (the GP; not {type(problem.model).__name__})")
     if problem.model_var_scale not in (0.0, 1.0):

@@ -17,13 +17,13 @@ import dataclasses
 import jax
 
 from estimators.base import Estimate, Problem, draw_noise, particle_estimate, particle_gradients, rollout, theta_dtype
-from models.linalg import cholesky
+from numerics.linalg import cholesky
 
 
 def gaussian_resample(s_tilde: jax.Array, xi: jax.Array) -> jax.Array:
     """``mu + xi L^T`` with mu (S,) and L (S, S) the Cholesky factor of the particles'
     covariance; s_tilde, xi: (P, S) -> (P, S). A singular covariance gives NaN (counted).
-    The Cholesky is ``models.linalg.cholesky``: vmap over seeds never batches LAPACK."""
+    The Cholesky is ``numerics.linalg.cholesky``: vmap over seeds never batches LAPACK."""
     mu = s_tilde.mean(axis=0)
     centred = s_tilde - mu
     cov = centred.T @ centred / (s_tilde.shape[0] - 1)

@@ -59,31 +59,53 @@ def report_progress(step: jax.Array, num_steps: int) -> None:
 _last_reported = [-1]
 
 
+class PolicyOptimisation(NamedTuple):
+    """One trial's policy optimisation: the final ``theta``, the objective estimate at each step
+    ``values`` (num_steps,), and ``nonfinite_steps``, how many steps had an estimate (value,
+    gradient or its variance) that was not finite. Such a step moves nothing
+    (``harness.optim.normalised_gradient`` maps NaN to 0), so a run can look normal while
+    most of its steps were lost: the count says so."""
+
+    theta: Any
+    values: jax.Array
+    nonfinite_steps: jax.Array
+
+
+def is_finite_tree(*trees) -> jax.Array:
+    """Whether every entry of every leaf is finite (a scalar bool)."""
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(trees)]))
+
+
 @functools.partial(jax.jit, static_argnames=("estimator", "num_steps", "num_particles", "learning_rate", "momentum"))
 def optimise_policy(problem: Problem, theta, key: jax.Array, *, estimator, num_steps: int, num_particles: int,
-                    learning_rate: float = LEARNING_RATE, momentum: float = MOMENTUM):
-    """``num_steps`` steps of the paper's optimiser on the model (one gradient estimate with a
-    fresh key per step). Returns the final theta and the objective estimate at each step
-    (num_steps,). One compilation serves every trial with the same buffer capacity."""
+                    learning_rate: float = LEARNING_RATE, momentum: float = MOMENTUM) -> PolicyOptimisation:
+    """``num_steps`` steps of the paper's optimiser on the model, one gradient estimate per step
+    with a fresh key ``jax.random.split(key, num_steps)[step]``, or with ``key`` itself at every
+    step for an estimator that ``fixes_noise`` (RP_FS, GR_FS: ``estimators.base.FixedNoise``).
+    One compilation serves every trial with the same buffer capacity."""
     optimiser = pipps_sgd(learning_rate, momentum)
+    fixes_noise = getattr(estimator, "fixes_noise", False)
 
     def one_step(carry, inputs):
         theta, opt_state = carry
         step, step_key = inputs
-        estimate = estimator(problem, theta, step_key, num_particles)
+        estimate = estimator(problem, theta, key if fixes_noise else step_key, num_particles)
         updates, opt_state = optimiser.update(estimate.grad, opt_state, grad_var=estimate.grad_var)
         report_progress(step, num_steps)
-        return (optax.apply_updates(theta, updates), opt_state), estimate.value
+        finite = is_finite_tree(estimate.value, estimate.grad, estimate.grad_var)
+        return (optax.apply_updates(theta, updates), opt_state), (estimate.value, finite)
 
     keys = jax.random.split(key, num_steps)
-    (theta, _), values = jax.lax.scan(one_step, (theta, optimiser.init(theta)), (jnp.arange(num_steps), keys))
-    return theta, values
+    (theta, _), (values, finite) = jax.lax.scan(one_step, (theta, optimiser.init(theta)),
+                                                (jnp.arange(num_steps), keys))
+    return PolicyOptimisation(theta, values, jnp.sum(~finite))
 
 
 @functools.lru_cache(maxsize=None)
 def pilco_optimiser(num_steps: int):
-    """``optimise(problem, theta, key) -> theta``: L-BFGS with a zoom line search on PILCO's
-    deterministic J; the best finite iterate is kept (a NaN step cannot lose progress)."""
+    """``optimise(problem, theta, key) -> PolicyOptimisation``: L-BFGS with a zoom line search on
+    PILCO's deterministic J; the best finite iterate is kept (a NaN step cannot lose progress),
+    and the steps whose value or gradient was not finite are counted."""
     solver = optax.lbfgs()
 
     @jax.jit
@@ -99,18 +121,20 @@ def pilco_optimiser(num_steps: int):
             updates, state = solver.update(grad, state, theta, value=value, grad=grad, value_fn=objective)
             better = jnp.isfinite(value) & (value < best_value)
             best = jax.tree.map(lambda b, t: jnp.where(better, t, b), best, theta)
-            return (optax.apply_updates(theta, updates), state, best, jnp.where(better, value, best_value)), value
+            finite = is_finite_tree(value, grad)
+            return (optax.apply_updates(theta, updates), state, best, jnp.where(better, value, best_value)), (value, finite)
 
         init = (theta, solver.init(theta), theta, jnp.asarray(jnp.inf, jax.tree.leaves(theta)[0].dtype))
-        (last, _, best, best_value), _ = jax.lax.scan(step, init, jnp.arange(num_steps))
+        (last, _, best, best_value), (values, finite) = jax.lax.scan(step, init, jnp.arange(num_steps))
         last_value = objective(last)
-        return jax.tree.map(lambda b, t: jnp.where(last_value < best_value, t, b), best, last)
+        theta = jax.tree.map(lambda b, t: jnp.where(last_value < best_value, t, b), best, last)
+        return PolicyOptimisation(theta, values, jnp.sum(~finite))
 
     return optimise
 
 
 def policy_optimiser(estimator_name: str, num_steps: int, num_particles: int):
-    """``optimise(problem, theta, key) -> theta``: PILCO's L-BFGS for "pilco", else
+    """``optimise(problem, theta, key) -> PolicyOptimisation``: PILCO's L-BFGS for "pilco", else
     ``num_steps`` steps of the paper's optimiser with that estimator and ``num_particles``."""
     if estimator_name == "pilco":
         return pilco_optimiser(num_steps)
@@ -118,7 +142,7 @@ def policy_optimiser(estimator_name: str, num_steps: int, num_particles: int):
 
     def optimise(problem, theta, key):
         return optimise_policy(problem, theta, key, estimator=estimator, num_steps=num_steps,
-                               num_particles=num_particles)[0]
+                               num_particles=num_particles)
 
     return optimise
 
@@ -143,12 +167,14 @@ class RunState(NamedTuple):
 
 class TrialRecord(NamedTuple):
     """One real-system trial of a learning run: ``trial`` (0-based over all trials), whether it
-    was ``learned`` (else random), the episode, and theta after it (None for random trials)."""
+    was ``learned`` (else random), the episode, theta after it and the optimisation's count of
+    non-finite steps (``PolicyOptimisation.nonfinite_steps``; both None for random trials)."""
 
     trial: int
     learned: bool
     episode: Episode
     theta: Any
+    nonfinite_steps: Any = None
 
 
 def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
@@ -157,7 +183,7 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
                  batched: bool = False, trim_model: bool = False, resume: RunState | None = None):
     """The paper's episodic loop: the task's random trials, then ``num_learned`` times: fit the
     GP to all data (``gp_steps`` L-BFGS steps), ``theta = optimise(problem with the GP, theta,
-    key)``, one real trial, add its data. Keys: random trial r ``fold_in(key, r)``, theta0
+    key).theta``, one real trial, add its data. Keys: random trial r ``fold_in(key, r)``, theta0
     ``fold_in(key, 10_000)``, optimisation and trial t ``fold_in(key, 20_000 + t)`` and
     ``fold_in(key, 30_000 + t)``. ``on_trial`` sees each trial as it ends. Returns
     (theta, data).
@@ -197,8 +223,9 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
             whole_episodes = -(-int(np.max(np.asarray(data.num_valid))) // task.horizon) * task.horizon
             posterior = gp.truncate(posterior, whole_episodes)
         problem = dataclasses.replace(problem, model_params=posterior)
-        theta = over_seeds(optimise)(problem, theta, seeds_fold_in(key, 20_000 + trial))
+        result = over_seeds(optimise)(problem, theta, seeds_fold_in(key, 20_000 + trial))
+        theta = result.theta
         episode = policy_episode(seeds_fold_in(key, 30_000 + trial), theta)
         data = add(data, episode)
-        on_trial(TrialRecord(task.num_random_trials + trial, True, episode, theta), data)
+        on_trial(TrialRecord(task.num_random_trials + trial, True, episode, theta, result.nonfinite_steps), data)
     return theta, data

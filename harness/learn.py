@@ -1,7 +1,8 @@
 """Episodic learning with each method, and its success rates (PIPPS, section "Experiments").
 
     python -m harness.learn --task cartpole --cost angle --noise-k 1 \
-        --methods pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n --repeats R --preset quick|paper
+        --methods pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n --repeats R --preset quick|quick_p50|paper \
+        [--task-options angle_cost_scale=1,rbf_parameterisation=pseudo_inputs]
 
 Each experiment (method, repeat) is one learning run (``harness.episodic.learning_run``): the
 task's random trial(s), then per learned trial: fit the GP to all data, optimise the policy on
@@ -12,17 +13,20 @@ the real system (evaluation only; their data are not used). Repeat r uses seed `
 
 A method's repeats run ``batch`` at a time, vmapped over their seeds (one compiled program
 per batch; the optimiser works on the GP trimmed to the rows held). Every trial of a batch's
-experiments is appended to ``learn_{task}_{cost}_k{k}.csv`` when the batch ends; a rerun
+experiments is appended to ``learn_{task}_{cost}_k{k}[_{preset}].csv`` when the batch ends; a rerun
 skips finished experiments. Between trials the batch's state (data, theta, rows so far) is
 saved under ``{out}/.cache/learn/``, so a rerun of an interrupted batch continues after its
 last finished trial (with the same repeats, settings and precision). Progress (batch, trial,
-optimiser step) goes to stderr. The report (``harness.learn_report``) regenerates every table
+optimiser step) goes to stderr. Each learned trial's row counts the optimiser steps whose
+estimate was not finite (``nonfinite_steps``: such a step moves nothing); the report flags
+every trial where it is above zero. The report (``harness.learn_report``) regenerates every table
 and figure from the CSV alone.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 import sys
 import time
@@ -44,28 +48,36 @@ METHODS = {
     "rp_fs": ("rp_fs", {}),
     "gr": ("gr", {}),
     "gr_fs": ("gr_fs", {}),
-    "lr": ("lr", {}),
-    "biw_lr": ("biw_lr", {}),
+    "lr": ("biw_lr", {}),
+    "lr_plain": ("lr", {}),
     "tp": ("tp", {}),
     "tp-sigma_f": ("tp", {"model_var_scale": 0.0}),
     "tp+sigma_n": ("tp", {"noise_var_scale": 100.0}),
 }
-"""method name -> (estimator, problem overrides): the paper's TP variants change the model's
-variances, not the estimator."""
+"""method name -> (estimator, problem overrides). The paper's learning column "LR" is its
+"model-based batch importance weighted likelihood ratio", so the method ``lr`` is the
+``biw_lr`` estimator; ``lr_plain`` is LR without the batch importance weights. The paper's TP
+variants change the model's variances, not the estimator."""
 
 PRESETS = {
     # learned trials (0: the task preset's), optimiser steps, particles, evaluation runs,
     # PILCO's L-BFGS steps, GP training steps
-    # quick: the paper's optimiser budget per trial (600 steps: its step size assumes them) on
-    # fewer trials and particles. 150 steps were tried first: they move each parameter by at
-    # most 150 * 5e-4 / (1 - 0.9) = 0.75 per trial, and TP's policies stayed where they began.
-    "quick": dict(learned_trials=5, optimiser_steps=600, particles=50, eval_runs=10, pilco_steps=40, gp_steps=60),
+    # Every preset keeps the paper's 600 optimiser steps per trial (its step size assumes them):
+    # 150 steps were tried first and move each parameter by at most 150 * 5e-4 / (1 - 0.9) =
+    # 0.75 per trial; TP's policies stayed where they began.
+    # quick: the paper's regime (300 particles, 600 steps, 150 L-BFGS steps) over fewer learned
+    # trials, so that its rates say something about the paper's. quick_p50: the earlier quick
+    # preset (50 particles, a regime the paper never ran), kept to extend and read its rows.
+    "quick": dict(learned_trials=8, optimiser_steps=600, particles=300, eval_runs=30, pilco_steps=150, gp_steps=100),
+    "quick_p50": dict(learned_trials=5, optimiser_steps=600, particles=50, eval_runs=10, pilco_steps=40, gp_steps=60),
     "paper": dict(learned_trials=0, optimiser_steps=600, particles=300, eval_runs=30, pilco_steps=150, gp_steps=100),
 }
 PARTICLE_ONLY = ("optimiser_steps", "particles")
 DEFAULT_METHODS = "pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n"
 """The paper's columns."""
-KEY_COLUMNS = ["task", "cost", "noise_k", "method", "repeat", "seed", "settings"]
+KEY_COLUMNS = ["task", "cost", "noise_k", "task_options", "method", "repeat", "seed", "settings"]
+"""A row's key: ``task_options`` is every option of the task it ran (``tasks.describe``), so a
+change of convention (e.g. the angle cost's scale) never reuses another's rows."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,6 +87,7 @@ class Args:
     task: str = "cartpole"
     cost: str = ""
     noise_k: float = 1.0
+    task_options: str = ""
     methods: str = DEFAULT_METHODS
     repeats: int = 10
     preset: str = "quick"
@@ -100,8 +113,10 @@ class Args:
             raise ValueError("repeats and batch must be >= 1")
 
     def make_task(self):
+        """The task with cost, noise_k and ``task_options`` ("NAME=VALUE,...", e.g.
+        "angle_cost_scale=1,rbf_parameterisation=pseudo_inputs") over its preset's."""
         options = {"noise_k": self.noise_k} | ({"cost": self.cost} if self.cost else {})
-        return tasks.make(self.task, **options)
+        return tasks.make(self.task, **options | tasks.parse_options(self.task, self.task_options))
 
     @property
     def settings(self) -> dict:
@@ -121,16 +136,20 @@ class Args:
 
     @property
     def stem(self) -> str:
+        """``{out}/learn_{task}_{cost}_k{k}``, with ``_{preset}`` unless the preset is "paper"."""
         task = self.make_task()
         cost = getattr(task, "cost_type", "default")
-        return os.path.join(self.out, f"learn_{self.task}_{cost}_k{self.noise_k:g}")
+        preset = "" if self.preset == "paper" else f"_{self.preset}"
+        return os.path.join(self.out, f"learn_{self.task}_{cost}_k{self.noise_k:g}{preset}")
 
 
 def checkpoint_path(args: Args, method: str, repeats: list[int]) -> str:
     """Where the batch of ``method`` over ``repeats`` saves its state between trials."""
     seeds = "-".join(str(args.seed + r) for r in repeats)
     precision = "f64" if args.x64 else "f32"
-    name = f"{os.path.basename(args.stem)}_{method}_{args.settings_name(method)}_{precision}_seeds{seeds}.pkl"
+    task_hash = hashlib.sha256(tasks.describe(args.make_task()).encode()).hexdigest()[:8]
+    name = (f"{os.path.basename(args.stem)}_{method}_{args.settings_name(method)}_task{task_hash}_{precision}"
+            f"_seeds{seeds}.pkl")
     return os.path.join(args.out, ".cache", "learn", name)
 
 
@@ -162,13 +181,17 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
             scores = np.full((len(repeats), 1), np.nan)
         seconds = time.perf_counter() - start
         returns, num_valid = np.asarray(record.episode.total_cost), np.asarray(data.num_valid)
+        nonfinite = (np.asarray(record.nonfinite_steps) if record.learned
+                     else np.full(len(repeats), np.nan))  # no optimisation before a random trial
         for i, repeat in enumerate(repeats):
             rows.append(dict(repeat=repeat, trial=record.trial, learned=record.learned,
                              trial_return=float(returns[i]), eval_mean=float(scores[i].mean()),
                              eval_std=float(scores[i].std(ddof=1)) if scores.shape[1] > 1 else np.nan,
-                             data_points=int(num_valid[i]), seconds=seconds))
+                             data_points=int(num_valid[i]), nonfinite_steps=float(nonfinite[i]), seconds=seconds))
         save_pickle(dict(state=RunState(record.trial + 1, record.theta, data), rows=rows), checkpoint)
         evaluation = f", evaluation mean {scores.mean():.2f}" if record.learned else ""
+        if np.nansum(nonfinite) > 0:
+            evaluation += f", NON-FINITE estimates in {nonfinite.astype(int).tolist()} optimiser steps"
         print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: trial {record.trial + 1}/{num_trials},"
               f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s)", file=sys.stderr, flush=True)
 
@@ -185,8 +208,8 @@ def run(args: Args):
     cost = getattr(task, "cost_type", "default")
 
     def row_key(method, repeat):
-        return dict(task=args.task, cost=cost, noise_k=args.noise_k, method=method, repeat=repeat,
-                    seed=args.seed + repeat, settings=args.settings_name(method))
+        return dict(task=args.task, cost=cost, noise_k=args.noise_k, task_options=tasks.describe(task), method=method,
+                    repeat=repeat, seed=args.seed + repeat, settings=args.settings_name(method))
 
     batches = [(m, list(range(first, min(first + args.batch, args.repeats))))
                for m in str_list(args.methods) for first in range(0, args.repeats, args.batch)]
@@ -201,8 +224,8 @@ def run(args: Args):
         jax.clear_caches()  # each trial compiled its own programs (README: memory mappings)
     rows = table.read()
     current = np.array([s == args.settings_name(m) for s, m in zip(rows.settings, rows.method)], bool)
-    return rows[current & rows.method.isin(str_list(args.methods)) & (rows.repeat < args.repeats)
-                & (rows.seed == rows.repeat + args.seed)]
+    return rows[current & (rows.task_options == tasks.describe(task)) & rows.method.isin(str_list(args.methods))
+                & (rows.repeat < args.repeats) & (rows.seed == rows.repeat + args.seed)]
 
 
 def main(argv=None) -> None:
@@ -212,7 +235,7 @@ def main(argv=None) -> None:
     jax.config.update("jax_enable_x64", args.x64)
     # Asynchronous CPU dispatch with debug callbacks (the optimiser's progress lines) is a known
     # hang (jax-ml/jax#25861), so it is off (no cost at these sizes). The hangs seen in batched
-    # runs were batched LAPACK calls, now avoided (models/linalg.py, tests/test_linalg.py).
+    # runs were batched LAPACK calls, now avoided (numerics/linalg.py, tests/test_linalg.py).
     jax.config.update("jax_cpu_enable_async_dispatch", False)
     rows = run(args)
     learn_report.write(rows, args.stem, f"python -m harness.learn {' '.join(argv or sys.argv[1:])}")

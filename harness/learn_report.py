@@ -20,7 +20,7 @@ import pandas as pd
 
 Z95 = 1.96
 
-PAPER = {  # PIPPS, success rates over 100 repeats (see ../shared/specs/tasks.md)
+PAPER = {  # PIPPS (Parmas et al. 2018), Tables 1-2: success rates over 100 repeats
     ("cartpole", "angle", 0.01): dict(pilco=0.88, rp=0.69, rp_fs=0.24, gr=0.63, gr_fs=0.74, lr=0.57, tp=0.82,
                                       **{"tp+sigma_n": 0.96}),
     ("cartpole", "angle", 1.0): dict(pilco=0.79, rp=0.74, rp_fs=0.23, gr=0.89, gr_fs=0.71, lr=0.96, tp=0.99,
@@ -54,11 +54,56 @@ def wilson_interval(successes: int, n: int) -> tuple[float, float]:
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+INVALID_METHODS = {
+    "rp_fs_seed0": "every repeat and trial optimised on the same particles (noise seed 0: the fixed-seed bug "
+                   "fixed in issue 18); not the paper's RP_FS",
+    "gr_fs_seed0": "every repeat and trial optimised on the same particles (noise seed 0: the fixed-seed bug "
+                   "fixed in issue 18); not the paper's GR_FS",
+}
+"""Method names of rows kept for the record that measure no method of the paper, and why."""
+
+
+def with_labels(rows: pd.DataFrame) -> pd.DataFrame:
+    """``rows`` with a ``label`` column: the method, followed by the task options that differ
+    between the file's runs (``[angle_cost_scale=1.0,...]``) when there are several."""
+    options = rows.task_options.astype(str).map(lambda text: dict(item.split("=", 1) for item in text.split(",")))
+    names = sorted({name for opts in options for name in opts})
+    varying = [name for name in names if len({opts.get(name) for opts in options}) > 1]
+    suffix = options.map(lambda opts: " [" + ",".join(f"{n}={opts.get(n)}" for n in varying) + "]" if varying else "")
+    return rows.assign(label=rows.method + suffix)
+
+
 def final_evaluations(rows: pd.DataFrame) -> pd.DataFrame:
-    """Per experiment (task, cost, noise_k, method, repeat): the last learned trial's row."""
-    learned = rows[rows.learned.astype(bool)]
-    keys = ["task", "cost", "noise_k", "method", "settings", "repeat"]
+    """Per experiment (task, cost, noise_k, label, repeat): the last learned trial's row."""
+    learned = with_labels(rows[rows.learned.astype(bool)])
+    keys = ["task", "cost", "noise_k", "task_options", "label", "method", "settings", "repeat"]
     return learned.sort_values("trial").groupby(keys, as_index=False).last()
+
+
+def column_order(labels) -> list[str]:
+    """Labels in the paper's column order (``harness.learn.METHODS``), then any others."""
+    from harness.learn import METHODS
+
+    rank = {method: i for i, method in enumerate(METHODS)}
+    return sorted(labels, key=lambda label: (rank.get(label.split(" [")[0], len(rank)), label))
+
+
+def nonfinite_lines(learned: pd.DataFrame) -> list[str]:
+    """Report lines on the optimiser steps whose gradient estimate was not finite (they move
+    nothing): a flagged table of every learned trial with a count above zero, or that there
+    were none. Rows written before the count was kept (no value) are counted as unknown."""
+    counts = learned["nonfinite_steps"] if "nonfinite_steps" in learned else pd.Series(np.nan, learned.index)
+    unknown = f" ({int(counts.isna().sum())} learned trials predate the count)" if counts.isna().any() else ""
+    flagged = learned[counts > 0]
+    if counts.isna().all():
+        return [f"Non-finite gradient estimates: not counted; these {len(counts)} learned trials predate the count."]
+    if flagged.empty:
+        return [f"Non-finite gradient estimates: none in the {int(counts.notna().sum())} learned trials that count "
+                f"them{unknown}."]
+    columns = ["label", "settings", "repeat", "trial", "nonfinite_steps"]
+    return [f"**WARNING: non-finite gradient estimates** in {len(flagged)} learned trials{unknown}. Each such "
+            "optimiser step moved nothing (its NaN became a zero step); those runs optimised on fewer steps than "
+            "their settings say:", "", flagged[columns].to_markdown(index=False)]
 
 
 def success_table(rows: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
@@ -67,17 +112,15 @@ def success_table(rows: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
     final = final_evaluations(rows)
     thresholds = {key: otsu_threshold(group.eval_mean) for key, group in final.groupby(["task", "cost"])}
     cells = {}
-    for (task, cost, k, method), group in final.groupby(["task", "cost", "noise_k", "method"]):
+    for (task, cost, k, label, method), group in final.groupby(["task", "cost", "noise_k", "label", "method"]):
         wins = int((group.eval_mean < thresholds[(task, cost)]).sum())
         low, high = wilson_interval(wins, len(group))
         paper = PAPER.get((task, cost, float(k)), {}).get(method)
-        cells.setdefault((task, cost, k), {})[method] = (
+        cells.setdefault((task, cost, k), {})[label] = (
             f"{wins / len(group):.2f} [{low:.2f}, {high:.2f}] n={len(group)}"
             + (f" (paper {paper:.2f})" if paper is not None else ""))
-    from harness.learn import METHODS  # the paper's column order
-
     table = pd.DataFrame.from_dict(cells, orient="index")
-    table = table[[m for m in METHODS if m in table.columns]]
+    table = table[column_order(table.columns)]
     table.index = pd.MultiIndex.from_tuples(table.index, names=["task", "cost", "k"])
     return table, thresholds
 
@@ -92,12 +135,12 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
 
     table, thresholds = success_table(rows)
     final = final_evaluations(rows)
-    learned = rows[rows.learned.astype(bool)]
+    learned = with_labels(rows[rows.learned.astype(bool)])
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    for index, (method, group) in enumerate(learned.groupby("method")):
-        stats = group.groupby("trial").eval_mean.agg(["mean", "std", "count"])
+    for index, label in enumerate(column_order(learned.label.unique())):
+        stats = learned[learned.label == label].groupby("trial").eval_mean.agg(["mean", "std", "count"])
         half = Z95 * stats["std"].fillna(0) / np.sqrt(stats["count"])
-        ax.plot(stats.index + 1, stats["mean"], marker="o", color=f"C{index}", label=method)
+        ax.plot(stats.index + 1, stats["mean"], marker="o", color=f"C{index}", label=label)
         ax.fill_between(stats.index + 1, stats["mean"] - half, stats["mean"] + half, color=f"C{index}", alpha=0.2)
     for (task, cost), threshold in thresholds.items():
         ax.axhline(threshold, color="k", linestyle="--", linewidth=0.8, label=f"success threshold {threshold:.2f}")
@@ -120,11 +163,18 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
                      "within-group sd, where one normal sample gives about 2.7 and a uniform one 3.4: only a value well "
                      "above that, say > 6, shows a real gap between learned and failed runs; below it the rates "
                      f"depend on an arbitrary cut). Sorted: {', '.join(f'{v:.2f}' for v in values)}.")
-    lines += ["", "Success rate [Wilson 95 % interval] n = repeats (the paper's rate, 100 repeats):", "",
-              table.reset_index().to_markdown(index=False), "", f"![learning curves]({os.path.basename(stem)}.png)", "",
+    lines += ["", *nonfinite_lines(learned), "",
+              "Success rate [Wilson 95 % interval] n = repeats (the paper's rate, 100 repeats):", "",
+              table.reset_index().to_markdown(index=False), "",
+              *[f"- `{m}`: INVALID, {why}." for m, why in INVALID_METHODS.items() if m in set(final.method)],
+              "", f"![learning curves]({os.path.basename(stem)}.png)", "",
+              "Mean evaluation cost after each learned trial (mean over repeats):", "",
+              learned.pivot_table(index="trial", columns="label", values="eval_mean", aggfunc="mean")[
+                  column_order(learned.label.unique())].to_markdown(floatfmt=".2f"), "",
               "Final evaluation cost per method (mean, sd):", "",
-              final.groupby(["method", "settings"]).eval_mean.agg(["mean", "std", "count"]).reset_index().to_markdown(
-                  index=False, floatfmt=".3f"), ""]
+              final.groupby(["label", "settings"]).eval_mean.agg(["mean", "std", "count"]).reset_index().to_markdown(
+                  index=False, floatfmt=".3f"), "",
+              "Task options of the runs: " + "; ".join(f"`{t}`" for t in sorted(final.task_options.unique())), ""]
     with open(stem + ".md", "w") as f:
         f.write("\n".join(lines))
 
@@ -135,7 +185,7 @@ def main(argv=None) -> None:
         raise SystemExit("usage: python -m harness.learn_report PATH.csv")
     stem = paths[0][:-4]
     rows = pd.read_csv(paths[0])
-    mixed = rows.groupby("method").settings.nunique()
+    mixed = rows.groupby(["method", "task_options"]).settings.nunique()
     if (mixed > 1).any():
         raise SystemExit(f"{paths[0]} holds several settings for {list(mixed[mixed > 1].index)}: a rate mixes "
                          "them; keep one settings value per method (e.g. filter the CSV) and rerun.")

@@ -1,14 +1,15 @@
 """The paper's whole learning grid in one command (PIPPS, the success-rate tables).
 
-    python -m harness.sweep --repeats R [--preset quick|paper] [--workers N] [--engine local|ray]
+    python -m harness.sweep --repeats R [--preset quick|quick_p50|paper] [--workers N] [--engine local|ray]
         [--cells all|0,3,...] [--learn-args "--particles 50 ..."]
 
 Cells: the cart-pole with the angle cost at k in {0.01, 1, 4, 9, 16} and the tip cost at
 k in {0.01, 1}, and the unicycle (k = 1); each cell is one ``harness.learn`` run over every
 method, writing its own CSV, so cells run in parallel without sharing a file. ``local`` uses a
 process pool over this machine's cores (``workers`` processes, default one per core); ``ray`` hands the same cells to
-a Ray cluster (``pip install -e ".[ray]"``; ``ray.init()`` connects to the cluster that
-``RAY_ADDRESS`` names, or starts a local one). Seeds depend only on the cell, the method and
+a Ray cluster (``pip install -e ".[ray]"``): the one already initialised in this process, else
+the one that ``RAY_ADDRESS`` names (``RAY_ADDRESS=<head-ip>:6379``, or ``auto`` on a node of
+the cluster), else a new local one. Seeds depend only on the cell, the method and
 the repeat, so both engines give the same results. Each cell resumes like ``harness.learn``.
 """
 
@@ -81,7 +82,8 @@ def main(argv=None) -> None:
     if args.engine == "ray":
         import ray  # optional extra: pip install -e ".[ray]"
 
-        ray.init()
+        if not ray.is_initialized():
+            ray.init()  # the cluster at RAY_ADDRESS, if set; else a new local one
         remote = ray.remote(run_cell)
         for done in ray.get([remote.remote(job) for job in jobs]):
             print(f"done: {done}", file=sys.stderr, flush=True)

@@ -7,7 +7,7 @@ and the kernel
     k_e(x, x') = sf_e^2 exp(-1/2 sum_d (x_d - x'_d)^2 / l_{e,d}^2),   y = f(x) + N(0, sn_e^2).
 
 Hyperparameters ``log_hyp`` (E, D+2): row e is ``[log l_{e,1..D}, log sf_e, log sn_e]``, PILCO's
-layout transposed (PILCO and ``shared/testdata/moment_matching.json`` store (D+2, E)).
+layout transposed (PILCO and ``tests/data/moment_matching.json`` store (D+2, E)).
 
 The training set lives in a fixed-capacity buffer (``GPData``) with a mask, so that one
 compiled function serves every trial and can be ``vmap``ped over seeds. Masked rows are made
@@ -21,7 +21,7 @@ host. Everything computes in the dtype of the data; nothing here changes JAX's g
 Transformations: prediction is elementwise ops and matrix products, so vmap, grad, jvp and
 jacfwd all apply. Training and ``posterior`` go through a Cholesky factorisation and triangular
 solves written so that vmap never batches a LAPACK call (batched ones deadlock jaxlib 0.10 on
-CPU; see ``models.linalg``); they support vmap and reverse-mode derivatives, not jvp.
+CPU; see ``numerics.linalg``); they support vmap and reverse-mode derivatives, not jvp.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from models.linalg import cholesky, solve_lower, solve_lower_t
+from numerics.linalg import cholesky, solve_lower, solve_lower_t
 from models.prediction import Prediction
 from tasks.base import Task, check_vector
 

@@ -12,11 +12,11 @@ output y and ``io = s^-1 cov(x, y)`` (``Moments``): what PILCO chains through a 
 - ``saturating_cost_moments``: mean and variance of ``1 - exp(-1/2 (x - z)^T W (x - z))``.
 
 Layout as in ``models.gp``: ``log_hyp`` (E, D+2), row a is ``[log l_a1..l_aD, log sf_a, log sn_a]``
-(PILCO and ``shared/testdata/moment_matching.json`` store the transpose).
+(PILCO and ``tests/data/moment_matching.json`` store the transpose).
 
 Transformations: pure functions of arrays. The only linear algebra is ``linalg.solve_det`` on
 (D, D) matrices, Gauss-Jordan elimination written in elementwise ops: no LAPACK call, so jit,
-vmap (over outputs inside, over anything outside), grad and jvp all apply (``models.linalg``
+vmap (over outputs inside, over anything outside), grad and jvp all apply (``numerics.linalg``
 explains why batched LAPACK calls are avoided under jaxlib 0.10 on CPU).
 """
 
@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from models.gp import GPPosterior
-from models.linalg import solve_det
+from numerics.linalg import solve_det
 from tasks.policies import RBF_NOISE_STD, RBF_SIGNAL_STD, RBFNetwork
 
 

@@ -1,5 +1,6 @@
-"""Declarative forms of a task's features and cost, so that one definition serves both a
-particle (``form(s)``) and PILCO's moment matching (``estimators.pilco``).
+"""Declarative forms of a task's features, cost and policy, so that one definition serves both
+a particle (``form(s)``) and PILCO's moment matching (``models.form_moments``,
+``estimators.pilco``).
 
 A trig-linear map of a state s (S,) goes through the augmented vector
 
@@ -75,6 +76,17 @@ class SaturatingCost(NamedTuple):
     def __call__(self, s):
         p = self.point(s)
         return 1.0 - jnp.exp(-0.5 * p @ jnp.asarray(self.weight, s.dtype) @ p)
+
+
+class PolicyForm(NamedTuple):
+    """A policy as moment matching sees it: ``u = u_max * sat(a)`` (``sat`` PILCO's sine
+    saturation; none if u_max is None) with the pre-activation a of the network parameters
+    ``net = policy.prepare(theta)``: ``network`` "rbf" (``tasks.policies.RBFNetwork``,
+    ``a = sum_i beta_i exp(-1/2 |(f - c_i) / l|^2)``) or "linear" (``LinearParams``,
+    ``a = W f + b``)."""
+
+    network: str
+    u_max: tuple | None
 
 
 def with_controls(form: TrigLinearMap, num_controls: int) -> TrigLinearMap:

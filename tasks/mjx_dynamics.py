@@ -39,7 +39,7 @@ from mujoco.mjx._src import forward as mjx_forward
 from mujoco.mjx._src import smooth as mjx_smooth
 from mujoco.mjx._src import solver as mjx_solver
 
-from models import linalg
+from numerics import linalg
 from tasks.base import Task, check_vector, hold_where
 
 StepFn = Callable[[jax.Array, jax.Array], jax.Array]
@@ -129,9 +129,9 @@ def _traceable_mjx(iterations: int):
        contacts (tasks/unicycle.xml). MJX's own scan-based loop helper does the iterating (the
        fix proposed upstream, google-deepmind/mujoco#2259).
     2. ``jax.scipy.linalg.cho_factor`` and ``cho_solve`` (the nv x nv mass matrix and Newton's
-       Hessian) are the elementwise ``models.linalg`` routines. Under ``vmap`` over particles
+       Hessian) are the elementwise ``numerics.linalg`` routines. Under ``vmap`` over particles
        the originals become batched LAPACK calls, which can deadlock jaxlib 0.10.2 on CPU
-       (``models/linalg.py``): a unicycle TP estimate at P = 300 through contact hung at 0 % CPU
+       (``numerics/linalg.py``): a unicycle TP estimate at P = 300 through contact hung at 0 % CPU
        inside two batched triangular solves.
 
     Only the ``jax`` name of MJX's solver, smooth and forward modules is swapped.

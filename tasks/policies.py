@@ -16,7 +16,8 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from models.linalg import solve_det
+from numerics.linalg import solve_det
+from tasks.forms import PolicyForm
 
 RBF_SIGNAL_STD = 1.0
 """Signal std of the RBF policy's GP-mean parameterisation (fixed, as in PILCO)."""
@@ -24,22 +25,23 @@ RBF_NOISE_STD = 0.01
 """Noise std of the RBF policy's GP-mean parameterisation (fixed, as in PILCO)."""
 
 
-def _identity(theta):
+def identity(theta):
+    """``prepare`` of a policy whose parameters are its network's (nothing to precompute)."""
     return theta
 
 
 class Policy(NamedTuple):
     """``init(key) -> theta`` (a pytree); ``network(prepare(theta), features (F,)) -> u (U,)``.
 
-    ``prepare`` maps theta to the network's parameters (default: identity). ``moments(net,
-    m (F,), S (F, F)) -> models.moment_matching.Moments`` of u for Gaussian features (for
-    PILCO), or None.
+    ``prepare`` maps theta to the network's parameters (default: identity). ``form`` says what
+    the network computes, for PILCO's moment matching (``models.form_moments.policy_moments``),
+    or None where it cannot be moment-matched.
     """
 
     init: Callable[[jax.Array], object]
     network: Callable[[object, jax.Array], jax.Array]
-    prepare: Callable[[object], object] = _identity
-    moments: Callable[[object, jax.Array, jax.Array], object] | None = None
+    prepare: Callable[[object], object] = identity
+    form: PolicyForm | None = None
 
     def apply(self, theta, f: jax.Array) -> jax.Array:
         """``u = network(prepare(theta), f)`` for one feature vector f (F,) -> (U,)."""
@@ -75,7 +77,7 @@ def rbf_weights(theta: RBFParams) -> jax.Array:
 
     K is the SE kernel (signal std ``RBF_SIGNAL_STD``) of the centres under each control's
     length-scales; ``sn = RBF_NOISE_STD``. Depends on theta only, so under ``vmap`` over
-    particles it is computed once. The solve is elementwise Gauss-Jordan (``models.linalg``):
+    particles it is computed once. The solve is elementwise Gauss-Jordan (``numerics.linalg``):
     ``jacfwd`` through it (``estimators.base.prepared``) and ``vmap`` over seeds never batch a
     LAPACK call.
     """
@@ -116,34 +118,37 @@ def rbf_preactivation(net: RBFNetwork, f: jax.Array) -> jax.Array:
 def rbf_policy(
     num_basis: int,
     u_max: tuple[float, ...],
-    sample_features: Callable[[jax.Array, int], jax.Array],
+    sample_centres: Callable[[jax.Array, int], jax.Array],
     init_lengthscales: tuple[float, ...],
+    direct: bool = False,
 ) -> Policy:
-    """An RBF network policy ``u = u_max * sat(pi~(f))`` (PILCO's GP-mean policy).
+    """An RBF network policy ``u = u_max * sat(pi~(f))``, in one of two parameterisations:
 
-    ``sample_features(key, n) -> (n, F)`` draws the initial centres (features of initial
-    states); the initial pseudo-targets are ``0.1 * N(0, 1)``; the initial length-scales are
-    ``init_lengthscales`` (F,) for every control.
+    - PILCO's (``direct=False``): theta = ``RBFParams`` (pseudo-inputs, pseudo-targets y,
+      length-scales), the weights ``beta = (K + 0.01^2 I)^-1 y`` solved by ``prepare``;
+    - direct (``direct=True``): theta = ``RBFNetwork`` (centres, weights w, length-scales),
+      ``prepare`` the identity (the authors' demo, proppo/pipps_demo).
+
+    ``sample_centres(key, n) -> (n, F)`` draws the initial centres; the initial pseudo-targets
+    (or weights) are ``0.1 * N(0, 1)``; the initial length-scales are ``init_lengthscales``
+    (F,) for every control. PILCO's moment matching applies to both (``beta = w``).
     """
     u_max_arr = jnp.asarray(u_max)
     num_controls = len(u_max)
 
     def init(key):
         k_centres, k_targets = jax.random.split(key)
-        centres = sample_features(k_centres, num_basis)
+        centres = sample_centres(k_centres, num_basis)
         targets = 0.1 * jax.random.normal(k_targets, (num_basis, num_controls), centres.dtype)
-        log_ell = jnp.log(jnp.asarray(init_lengthscales, centres.dtype))
-        return RBFParams(centres, targets, jnp.tile(log_ell, (num_controls, 1)))
+        log_ell = jnp.tile(jnp.log(jnp.asarray(init_lengthscales, centres.dtype)), (num_controls, 1))
+        if direct:
+            return RBFNetwork(centres, targets.T, log_ell)
+        return RBFParams(centres, targets, log_ell)
 
     def network(net, f):
         return u_max_arr.astype(f.dtype) * saturate(rbf_preactivation(net, f))
 
-    def moments(net, m, S):
-        from models import moment_matching  # imported here: moment_matching imports this module
-
-        return saturated_moments(moment_matching.rbf_policy_moments(net, m, S), u_max_arr.astype(m.dtype))
-
-    return Policy(init, network, rbf_network, moments)
+    return Policy(init, network, identity if direct else rbf_network, PolicyForm("rbf", tuple(u_max)))
 
 
 def linear_policy(feature_dim: int, u_max: tuple[float, ...], init_scale: float = 1e-2) -> Policy:
@@ -158,18 +163,4 @@ def linear_policy(feature_dim: int, u_max: tuple[float, ...], init_scale: float 
     def network(theta, f):
         return u_max_arr.astype(f.dtype) * saturate(theta.weight @ f + theta.bias)
 
-    def moments(theta, m, S):
-        from models.moment_matching import Moments
-
-        linear = Moments(theta.weight @ m + theta.bias, theta.weight @ S @ theta.weight.T, theta.weight.T)
-        return saturated_moments(linear, u_max_arr.astype(m.dtype))
-
-    return Policy(init, network, moments=moments)
-
-
-def saturated_moments(pre, u_max: jax.Array):
-    """Moments of ``u_max * sat(a)`` from those of the pre-activation a (io chained: F x U)."""
-    from models.moment_matching import Moments, saturation_moments
-
-    u = saturation_moments(pre.mean, pre.cov, u_max)
-    return Moments(u.mean, u.cov, pre.io @ u.io)
+    return Policy(init, network, form=PolicyForm("linear", tuple(u_max)))

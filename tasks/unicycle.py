@@ -4,7 +4,7 @@ ODE state (12) ``z = [dtheta, dphi, dpsiw, dpsif, dpsit, x, y, theta, phi, psiw,
 (theta roll, phi yaw, psiw wheel, psif frame pitch, psit turntable; (x, y) the contact point);
 controls ``u = [V, U]`` (turntable torque, wheel torque). Modelled state (10)
 ``s = [dtheta, dphi, dpsiw, dpsif, dpsit, xc, yc, theta, phi, psif]`` with the contact point in
-the yawed frame. Equations: shared/specs/unicycle_equations.md.
+the yawed frame. Equations: pilco-matlab's unicycle (D. Forster's derivation).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import ClassVar
 import jax.numpy as jnp
 import numpy as np
 
-from models.linalg import solve_det
+from numerics.linalg import solve_det
 from tasks.base import Task, check_vector
 from tasks.forms import SaturatingCost, TrigLinearMap
 from tasks.policies import Policy, linear_policy

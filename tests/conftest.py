@@ -1,10 +1,12 @@
 """Test configuration: float64 for the whole suite (reference values are checked to 1e-9),
 and a persistent compilation cache so that MJX compiles once per machine."""
 
+import json
 import os
 
 import jax
 import jax.numpy as jnp
+import pandas as pd
 import pytest
 
 jax.config.update("jax_enable_x64", True)
@@ -14,8 +16,27 @@ jax.config.update(
 )
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
-SHARED = os.path.join(os.path.dirname(__file__), "..", "..", "shared")
-TESTDATA = os.path.join(SHARED, "testdata")
+DATA = os.path.join(os.path.dirname(__file__), "data")
+"""The reference data (pilco-matlab under Octave), copied with their provenance: data/README.md."""
+
+
+def reference_path(name: str) -> str:
+    """Path of the reference file ``name`` in tests/data (fails with the files there)."""
+    path = os.path.join(DATA, name)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"no reference file {name!r} in {DATA}; there are {sorted(os.listdir(DATA))}")
+    return path
+
+
+def load_dynamics_vectors(task_name: str) -> pd.DataFrame:
+    """The task's reference states, controls, derivatives (``d_*``) and next states (``next_*``)."""
+    return pd.read_csv(reference_path(f"{task_name}_dynamics.csv"))
+
+
+def load_moment_matching_cases() -> list[dict]:
+    """PILCO's moment-matching cases (gp0, gp2, gsat, gtrig, loss_sat each)."""
+    with open(reference_path("moment_matching.json")) as f:
+        return json.load(f)
 
 
 @pytest.fixture

@@ -124,8 +124,11 @@ def test_compare_findings_use_the_largest_particle_count_every_model_has():
     assert alone == "- rp: no particle count measured on every model."
 
 
-@pytest.mark.parametrize("model", ["gp", "jax", pytest.param("mjx", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("model", ["gp", pytest.param("jax", marks=pytest.mark.slow),
+                                   pytest.param("mjx", marks=pytest.mark.slow)])
 def test_landscape_runs_end_to_end_and_resumes(tmp_path, capsys, model):
+    """The landscape on the GP; on the true dynamics with -m slow (the default suite runs the
+    true dynamics through the compare experiment)."""
     from harness import landscape
 
     argv = ["--model", model, "--particles", "6", "--points", "2", "--grid", "3", "--scenario-trials", "1",
@@ -169,7 +172,10 @@ def test_compare_runs_end_to_end(tmp_path):
         compare.main(["--reference-model", "gp"])
 
 
+@pytest.mark.slow
 def test_scenario_can_be_learned_with_pilco():
+    """Slow (50 s); the default suite builds a TP scenario (the variance experiment's) and runs
+    PILCO through the same learning loop (test_learn)."""
     from harness import scenario
 
     args = scenario.ScenarioArgs(learned_trials=1, optimiser_steps=2, estimator="pilco", gp_steps=3)
@@ -177,4 +183,5 @@ def test_scenario_can_be_learned_with_pilco():
     assert len(built.returns) == 2 and np.isfinite(built.returns).all()
     assert "PILCO (2 L-BFGS steps)" in args.describe()
     start = tasks.make("cartpole").default_policy().init(jax.random.fold_in(jax.random.key(0), 10_000))
-    assert not np.allclose(np.asarray(built.theta.targets), np.asarray(start.targets))  # the policy was optimised
+    moved = [not np.allclose(a, b) for a, b in zip(jax.tree.leaves(built.theta), jax.tree.leaves(start))]
+    assert any(moved)  # the policy was optimised

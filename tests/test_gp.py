@@ -6,8 +6,6 @@ All randomness comes from fixed seeds and keys.
 """
 
 import faulthandler
-import json
-import os
 
 import jax
 import jax.numpy as jnp
@@ -17,8 +15,8 @@ import pytest
 import tasks
 from models import gp
 from models.prediction import Prediction
+from conftest import load_moment_matching_cases
 
-TESTDATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "testdata")
 NUM_TRANSITIONS = 200  # cart-pole training set, a full buffer (padding is tested elsewhere)
 CARTPOLE_STEPS = 60  # L-BFGS steps: the objective is within 0.1 nats of its limit by step 50
 # Box of ODE states [x, xdot, thetadot, theta] for the random cart-pole transitions: broader
@@ -157,8 +155,7 @@ def test_predictions_reproduce_pilco_gp0_by_monte_carlo():
     its own standard error; every entry (6 cases x 44) must satisfy |z| < 4.5 (under exactness
     P(|z| > 4.5) = 7e-6 per entry, about 0.2 % for all of them; measured max 2.7). Leaving
     model_var out of S gives max |z| 9000, adding the noise variance to it 43."""
-    with open(os.path.join(TESTDATA, "moment_matching.json")) as f:
-        cases = [case["gp0"] for case in json.load(f)]
+    cases = [case["gp0"] for case in load_moment_matching_cases()]
     stack = lambda name: jnp.asarray(np.stack([np.asarray(c[name], float) for c in cases]))
     inputs, targets, m, s = stack("inputs"), stack("targets"), stack("m"), stack("s")
     log_hyp = jnp.swapaxes(stack("log_hyp"), 1, 2)  # PILCO's (D+2, E) -> (E, D+2)

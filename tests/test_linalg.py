@@ -1,4 +1,4 @@
-"""Tests of models/linalg.py: the solves against numpy, their derivatives against finite
+"""Tests of numerics/linalg.py: the solves against numpy, their derivatives against finite
 differences, and the structural guard against the jaxlib 0.10 CPU deadlock: no program the
 learning experiment runs may contain a LAPACK call with batch dimensions (float64, fixed seeds).
 """
@@ -17,7 +17,7 @@ import tasks
 from estimators.base import task_problem
 from harness.episodic import evaluate_policy, policy_optimiser
 from models import gp
-from models.linalg import cholesky, cholesky_small, solve_det, solve_lower, solve_lower_t, solve_triangular_small
+from numerics.linalg import cholesky, cholesky_small, solve_det, solve_lower, solve_lower_t, solve_triangular_small
 from tasks.rollout import run_episode
 
 jax.config.update("jax_enable_x64", True)
@@ -85,7 +85,7 @@ def test_small_cholesky_and_triangular_solves_match_lapack_and_differentiate(n):
 # ----- the deadlock guard -------------------------------------------------------------------------
 def batched_lapack_calls(fn, *args) -> list[str]:
     """Names of the LAPACK calls in ``jit(fn)``'s lowered program that carry batch dimensions
-    (the calls that deadlock jaxlib 0.10 on CPU when two run at once; see models/linalg.py)."""
+    (the calls that deadlock jaxlib 0.10 on CPU when two run at once; see numerics/linalg.py)."""
     text = jax.jit(fn).lower(*args).as_text()
     return [re.search(r"@(\w+)", line).group(1) for line in text.splitlines()
             if "lapack" in line and 'num_batch_dims = "0"' not in line]
@@ -110,11 +110,11 @@ def test_the_mjx_step_batches_no_lapack_call(task_name):
     assert batched_lapack_calls(jax.vmap(jax.grad(lambda z, u: jnp.sum(step(z, u) ** 2), argnums=(0, 1))), z, u) == []
 
 
-def batched_learning_programs(task_name: str, methods: list[str]):
+def batched_learning_programs(task_name: str, options: dict, methods: list[str]):
     """The programs one learning trial runs, each vmapped over two seeds as ``harness.learn``
     runs them: the GP fit, each method's policy optimisation (2 steps, 4 particles), the real
     trial, the evaluation. Yields (name, fn, args)."""
-    task = tasks.make(task_name)
+    task = tasks.make(task_name, **options)
     seeds = jax.random.split(jax.random.key(0), 2)
     problem = task_problem(task, gp.GPModel(task))
     data = jax.tree.map(lambda x: jnp.broadcast_to(x, (2,) + x.shape), problem.model.empty_data(2 * task.horizon))
@@ -128,13 +128,20 @@ def batched_learning_programs(task_name: str, methods: list[str]):
     yield "evaluation", jax.vmap(lambda k, th: evaluate_policy(task, problem.policy, th, k, 2)), (seeds, theta)
 
 
-@pytest.mark.parametrize("task_name, methods", [
-    ("cartpole", sorted(estimators.REGISTRY)),
-    ("unicycle", []),  # its own LAPACK call was the mass-matrix solve of the real trials
+PSEUDO_INPUTS = {"rbf_parameterisation": "pseudo_inputs"}  # the RBF weight solve, under jacfwd in TP
+
+
+@pytest.mark.parametrize("task_name, options, methods", [
+    # GR's resampling Cholesky, the weight solve under TP's jacfwd, PILCO's moment matching:
+    ("cartpole", PSEUDO_INPUTS, ["gr", "pilco", "tp"]),
+    ("unicycle", {}, []),  # its own LAPACK call was the mass-matrix solve of the real trials
+    pytest.param("cartpole", PSEUDO_INPUTS, sorted(estimators.REGISTRY), marks=pytest.mark.slow),
+    pytest.param("cartpole", {"rbf_parameterisation": "direct"}, sorted(estimators.REGISTRY), marks=pytest.mark.slow),
 ])
-def test_no_learning_program_batches_a_lapack_call(task_name, methods):
+def test_no_learning_program_batches_a_lapack_call(task_name, options, methods):
     """Regression test for the learning runs that hung at 0 % CPU (GR's resampling Cholesky,
-    the RBF policy's weight solve under jacfwd, the unicycle's mass-matrix solve were batched)."""
-    found = {name: calls for name, fn, args in batched_learning_programs(task_name, methods)
+    the RBF policy's weight solve under jacfwd, the unicycle's mass-matrix solve were batched).
+    The default suite lowers the three methods with distinct linear algebra; -m slow, all."""
+    found = {name: calls for name, fn, args in batched_learning_programs(task_name, options, methods)
              if (calls := batched_lapack_calls(fn, *args))}
     assert found == {}

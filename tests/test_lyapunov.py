@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from harness.lyapunov import exponent, finite_time_exponents, normalised_product
-from models.linear_gaussian import LinearGaussianSystem
+from estimators.linear_gaussian import LinearGaussianSystem
 from tasks.policies import LinearParams
 
 

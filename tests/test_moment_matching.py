@@ -1,6 +1,6 @@
 """Tests of PILCO's analytic moment matching (models/moment_matching.py), in float64.
 
-References: PILCO's own outputs (``shared/testdata/moment_matching.json``, pilco-matlab under
+References: PILCO's own outputs (``tests/data/moment_matching.json``, pilco-matlab under
 Octave), Monte Carlo estimates with fixed keys, dense numpy written out from the formulas, and
 the project's deterministic GP prediction and RBF policy at near-point inputs.
 
@@ -18,9 +18,6 @@ Two conventions of the reference data, established on all six cases to round-off
   Monte Carlo test pins down E[c] itself. W is symmetric positive definite in every case.
 """
 
-import json
-import os
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,11 +26,12 @@ from jax.test_util import check_grads
 
 from models import gp
 from models import moment_matching as mm
+from models.form_moments import policy_moments
+import tasks
 from tasks import policies
+from conftest import load_moment_matching_cases
 
-TESTDATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "testdata")
-with open(os.path.join(TESTDATA, "moment_matching.json")) as _f:
-    CASES = json.load(_f)
+CASES = load_moment_matching_cases()
 REF = dict(rtol=1e-6, atol=1e-12)  # see the module docstring
 GP2_JITTER = 1e-6  # pilco-matlab's gp2 adds this to S's diagonal
 NUM_MC = 400_000  # Monte Carlo samples
@@ -277,6 +275,44 @@ def test_rbf_policy_moments_at_point_input():
     np.testing.assert_allclose(mom.mean, policies.rbf_preactivation(net, m), rtol=1e-6, atol=1e-9)
     jac = jax.jacobian(policies.rbf_preactivation, argnums=1)(net, m)  # (U, F)
     np.testing.assert_allclose(mom.io, jac.T, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("task_name", ["cartpole", "unicycle"])
+def test_policy_moments_match_monte_carlo(task_name):
+    """``policy_moments`` of the task's policy for Gaussian features near the start, against
+    400k samples: mean, covariance and cov(f, u) within 5 standard errors. Where the moments
+    are exact: the cart-pole's RBF pre-activation (its form without the saturation; the
+    saturation's moments assume a Gaussian input, PILCO's approximation, tested on its own
+    above) and the unicycle's linear policy with its saturation."""
+    task = tasks.make(task_name)
+    policy = task.default_policy()
+    net = policy.prepare(policy.init(jax.random.key(21)))
+    if task_name == "cartpole":
+        form, apply = policy.form._replace(u_max=None), policies.rbf_preactivation
+    else:
+        form, apply, net = policy.form, policy.network, net._replace(weight=10 * net.weight)
+    f_dim = task.policy_feature_map(jnp.zeros(task.model_state_dim)).shape[0]
+    m = 0.2 * jax.random.normal(jax.random.key(22), (f_dim,))
+    s = random_cov(jax.random.key(23), f_dim, 0.3)
+    f = gaussian_samples(jax.random.key(24), m, s)
+    u = np.asarray(jax.vmap(lambda x: apply(net, x))(jnp.asarray(f)))
+    assert_mc_moments(f, u, policy_moments(form, net, jnp.asarray(m), jnp.asarray(s)), s)
+
+
+def test_the_direct_rbf_form_is_pilcos_with_its_weights_as_parameters():
+    """The direct form's theta is the network itself: with the weights that PILCO's form solves
+    for, the controls and the moments are the same (to 1e-12)."""
+    pilco_form = tasks.make("cartpole", rbf_parameterisation="pseudo_inputs").default_policy()
+    direct_form = tasks.make("cartpole", rbf_parameterisation="direct").default_policy()
+    theta = pilco_form.init(jax.random.key(25))
+    net = pilco_form.prepare(theta)
+    assert direct_form.prepare(net) is net and direct_form.form == pilco_form.form
+    f = jnp.array([0.05, -0.1, 0.2, 0.01, -0.99])
+    np.testing.assert_allclose(direct_form.apply(net, f), pilco_form.apply(theta, f), rtol=1e-12)
+    m, s = f, random_cov(jax.random.key(26), 5, 0.2)
+    for a, b in zip(policy_moments(direct_form.form, direct_form.prepare(net), m, s),
+                    policy_moments(pilco_form.form, pilco_form.prepare(theta), m, s)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
 
 
 # ----- transformations -------------------------------------------------------------------------

@@ -27,3 +27,31 @@ def test_noise_free_steps_are_signs():
     state = opt.init(jnp.zeros(2))
     updates, _ = opt.update(jnp.array([1e-8, -1e8]), state, grad_var=jnp.zeros(2))
     np.testing.assert_allclose(updates, [-5e-4, 5e-4])
+
+
+def test_non_finite_estimates_at_chosen_steps_are_counted_and_move_nothing():
+    """An estimator of J = |theta|^2 / 2 that returns NaN at steps 2 and 5 of 8 (it knows the
+    step by its key: ``optimise_policy`` gives step s the key ``split(key, 8)[s]``)."""
+    import jax
+
+    from estimators.base import Estimate
+    from harness.episodic import optimise_policy
+
+    key, num_steps, nan_steps = jax.random.key(0), 8, jnp.array([2, 5])
+    bad_keys = jax.random.key_data(jax.random.split(key, num_steps)[nan_steps])
+
+    def nan_at_chosen_steps(problem, theta, step_key, num_particles):
+        bad = jnp.any(jnp.all(bad_keys == jax.random.key_data(step_key), axis=-1))
+        grad = jnp.where(bad, jnp.nan, theta)
+        return Estimate(0.5 * jnp.sum(theta**2), grad, jnp.zeros_like(theta), {})
+
+    theta0 = jnp.array([1.0, -2.0])
+    result = optimise_policy(None, theta0, key, estimator=nan_at_chosen_steps, num_steps=num_steps, num_particles=1)
+    assert int(result.nonfinite_steps) == 2
+    assert bool(jnp.all(jnp.isfinite(result.theta)))
+    # The steps' momentum sums: 6 finite sign steps of size 1, the NaN steps add 0.
+    momentum, moved = 0.0, 0.0
+    for step in range(num_steps):
+        momentum = 0.9 * momentum + (0.0 if step in (2, 5) else 1.0)
+        moved += 5e-4 * momentum
+    np.testing.assert_allclose(result.theta, theta0 - moved * jnp.sign(theta0), rtol=1e-12)

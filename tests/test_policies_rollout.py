@@ -24,7 +24,7 @@ def test_saturation():
 def test_rbf_policy_is_pilco_gp_mean():
     """pi~(f) = sum_i beta_i k(f, c_i), beta = (K + sn^2 I)^-1 y: at a centre, with a tiny
     noise, the network nearly interpolates its pseudo-target."""
-    task = tasks.make("cartpole")
+    task = tasks.make("cartpole", rbf_parameterisation="pseudo_inputs")
     policy = task.default_policy()
     theta = policy.init(jax.random.key(1))
     assert theta.centres.shape == (50, 5) and theta.targets.shape == (50, 1)
@@ -38,6 +38,22 @@ def test_rbf_policy_is_pilco_gp_mean():
     f = jnp.array([0.05, -0.1, 0.2, 0.01, -0.99])
     pre = np.exp(-0.5 * (((np.asarray(f) - c) / ell) ** 2).sum(-1)) @ beta
     np.testing.assert_allclose(policy.apply(theta, f), 10 * saturate(pre), rtol=1e-8)
+
+
+def test_direct_rbf_policy():
+    """The direct form: theta holds the weights (U, B) themselves, small at the start; the
+    centres start at the initial mean's features plus N(0, 1) noise."""
+    task = tasks.make("cartpole", rbf_parameterisation="direct")
+    policy = task.default_policy()
+    theta = policy.init(jax.random.key(1))
+    assert theta.centres.shape == (50, 5) and theta.weights.shape == (1, 50)
+    assert 0.05 < float(theta.weights.std()) < 0.2  # 0.1 * N(0, 1)
+    spread = np.asarray(theta.centres) - np.array([0.0, 0.0, 0.0, 0.0, 1.0])  # features of the mean state
+    assert np.all(np.abs(spread.mean(0)) < 0.5) and np.all((0.7 < spread.std(0)) & (spread.std(0) < 1.3))
+    f = jnp.array([0.05, -0.1, 0.2, 0.01, -0.99])
+    ell = np.array([1, 1, 1, 0.7, 0.7])
+    pre = np.exp(-0.5 * (((np.asarray(f) - np.asarray(theta.centres)) / ell) ** 2).sum(-1)) @ np.asarray(theta.weights[0])
+    np.testing.assert_allclose(policy.apply(theta, f), 10 * saturate(pre), rtol=1e-10)
 
 
 def test_linear_policy():

@@ -1,22 +1,20 @@
 """Tasks: dynamics against the reference vectors, costs, features, augmentation, bad input."""
 
 import math
-import os
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pandas as pd
 import pytest
 
 import tasks
 from tasks import base, unicycle
-from conftest import TESTDATA
+from conftest import load_dynamics_vectors
 
 
 def reference(name):
     task = tasks.make(name)
-    df = pd.read_csv(os.path.join(TESTDATA, f"{name}_dynamics.csv"))
+    df = load_dynamics_vectors(name)
     n, m = task.state_dim, task.control_dim
     z, u = df.iloc[:, :n].to_numpy(), df.iloc[:, n : n + m].to_numpy()
     dz = df[[c for c in df.columns if c.startswith("d_")]].to_numpy()
@@ -55,7 +53,7 @@ def test_rk4_step_is_the_fourth_order_taylor_map_on_a_linear_ode():
 def test_reference_columns_are_in_ode_order():
     for name in ("cartpole", "unicycle"):
         task = tasks.make(name)
-        df = pd.read_csv(os.path.join(TESTDATA, f"{name}_dynamics.csv"))
+        df = load_dynamics_vectors(name)
         header = [c.replace("dx", "xdot").replace("dtheta", "thetadot") if name == "cartpole" else c
                   for c in df.columns[: task.state_dim]]
         assert tuple(header) == task.state_names
@@ -63,13 +61,27 @@ def test_reference_columns_are_in_ode_order():
 
 # ----- costs at hand-computed points -------------------------------------------------------
 
-def test_cartpole_angle_cost():
-    task = tasks.make("cartpole", cost="angle")
+@pytest.mark.parametrize("scale", [0.5, 1.0])
+def test_cartpole_angle_cost(scale):
+    """``1 - exp(-a (x^2 + (theta - pi)^2))``: a = 1/2 the authors' convention, 1 the paper's text."""
+    task = tasks.make("cartpole", cost="angle", angle_cost_scale=scale)
     assert float(task.cost(jnp.array([0.0, 3.0, -2.0, math.pi]))) == pytest.approx(0.0, abs=1e-15)
-    # x = 1, theta = pi: 1 - exp(-1); velocities do not count (Q = diag(1, 1, 0, 0)).
-    assert float(task.cost(jnp.array([1.0, 5.0, 5.0, math.pi]))) == pytest.approx(1 - math.exp(-1), rel=1e-12)
+    # x = 1, theta = pi: 1 - exp(-a); velocities do not count (Q = diag(1, 1, 0, 0)).
+    assert float(task.cost(jnp.array([1.0, 5.0, 5.0, math.pi]))) == pytest.approx(1 - math.exp(-scale), rel=1e-12)
+    # x = 0.3, theta = pi - 0.4: 1 - exp(-a (0.09 + 0.16)).
+    assert float(task.cost(jnp.array([0.3, 0.0, 0.0, math.pi - 0.4]))) == pytest.approx(1 - math.exp(-0.25 * scale),
+                                                                                        rel=1e-12)
     # Raw angle, not wrapped: theta = -pi is 2 pi from the target.
-    assert float(task.cost(jnp.array([0.0, 0.0, 0.0, -math.pi]))) == pytest.approx(1 - math.exp(-4 * math.pi**2), rel=1e-12)
+    assert float(task.cost(jnp.array([0.0, 0.0, 0.0, -math.pi]))) == pytest.approx(
+        1 - math.exp(-4 * math.pi**2 * scale), rel=1e-12)
+
+
+def test_the_pipps_preset_takes_the_authors_conventions():
+    """The authors' demo: angle cost scale 1/2 and a direct-weight RBF policy; the pilco
+    preset keeps PILCO's pseudo-input policy."""
+    task = tasks.make("cartpole")
+    assert (task.angle_cost_scale, task.rbf_parameterisation) == (0.5, "direct")
+    assert tasks.make("cartpole", preset="pilco").rbf_parameterisation == "pseudo_inputs"
 
 
 def test_cartpole_tip_cost():
@@ -210,6 +222,9 @@ def test_noise_and_presets():
         (lambda: tasks.make("cartpole", preset="paper"), "valid presets"),
         (lambda: tasks.make("cartpole", cost="distance"), "valid costs"),
         (lambda: tasks.make("cartpole", noise_k=-1.0), "noise_k"),
+        (lambda: tasks.make("cartpole", angle_cost_scale=0.0), "angle_cost_scale"),
+        (lambda: tasks.make("cartpole", rbf_parameterisation="gp"), "valid: \\['direct', 'pseudo_inputs'\\]"),
+        (lambda: tasks.parse_options("cartpole", "angle_scale=1"), "NAME one of"),
         (lambda: tasks.make("unicycle", horizon=0), "horizon"),
     ],
 )
@@ -218,8 +233,12 @@ def test_bad_options(call, message):
         call()
 
 
-def test_cost_option_is_listed():
-    assert "cost" in tasks.options("cartpole") and "noise_k" in tasks.options("unicycle")
+def test_options_are_listed_and_parsed():
+    assert {"cost", "angle_cost_scale", "rbf_parameterisation"} <= set(tasks.options("cartpole"))
+    assert "noise_k" in tasks.options("unicycle")
+    parsed = tasks.parse_options("cartpole", "angle_cost_scale=1, rbf_parameterisation=pseudo_inputs,horizon=40")
+    assert parsed == {"angle_cost_scale": 1.0, "rbf_parameterisation": "pseudo_inputs", "horizon": 40}
+    assert "angle_cost_scale=1.0" in tasks.describe(tasks.make("cartpole", **parsed))
 
 
 def test_wrong_shapes():

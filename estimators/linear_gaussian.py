@@ -19,9 +19,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from estimators.base import Problem
-from models.moment_matching import Moments
+from estimators.pilco import MomentForms
 from models.prediction import Prediction
-from tasks.forms import SaturatingCost, TrigLinearMap
+from tasks.forms import PolicyForm, SaturatingCost, TrigLinearMap
 from tasks.policies import LinearParams, Policy
 
 
@@ -97,10 +97,7 @@ class LinearGaussianSystem:
             weight = 0.1 * jax.random.normal(key, (control_dim, self.state_dim))
             return LinearParams(weight, jnp.zeros((control_dim,), weight.dtype))
 
-        def moments(theta, m, S):  # exact for an affine map
-            return Moments(theta.weight @ m + theta.bias, theta.weight @ S @ theta.weight.T, theta.weight.T)
-
-        return Policy(init, lambda theta, s: theta.weight @ s + theta.bias, moments=moments)
+        return Policy(init, lambda theta, s: theta.weight @ s + theta.bias, form=PolicyForm("linear", None))
 
     def initial_state(self, key: jax.Array) -> jax.Array:
         return _array(self.init_mean) + _array(self.init_std) * jax.random.normal(key, (self.state_dim,))
@@ -108,8 +105,6 @@ class LinearGaussianSystem:
     def problem(self, model_var_scale: float = 1.0, noise_var_scale: float = 1.0) -> Problem:
         """The particle problem of this system (features = the state itself), with the forms
         PILCO needs (moment matching is exact here)."""
-        from estimators.pilco import MomentForms
-
         eye = np.eye(self.state_dim)
         forms = MomentForms(
             features=TrigLinearMap.make(np.zeros((0, self.state_dim)), eye),
