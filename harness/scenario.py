@@ -4,7 +4,8 @@ From a seed: the task's random trial(s), then ``learned_trials`` trials of the p
 (fit the GP to all data, optimise the policy on it with ``estimator`` for
 ``optimiser_steps`` steps of the paper's optimiser, run the policy once on the real system,
 add the data); finally the GP is refitted to all data. The result is theta0 (the policy after
-the last trial) and the GP posterior. The cache file's name is a hash of the settings.
+the last trial) and the GP posterior. The cache file's name is a hash of the settings and of
+the task's options.
 
 Every gradient experiment (variance, landscape, compare) starts from the same ``Setting``: the
 scenario's theta0, a fixed random unit direction d in parameter space (from the seed), and the
@@ -86,7 +87,10 @@ def build(args: ScenarioArgs) -> Scenario:
 
 
 def cache_path(args: ScenarioArgs, cache_dir: str) -> str:
-    settings = json.dumps({**dataclasses.asdict(args), "x64": jax.config.jax_enable_x64}, sort_keys=True)
+    """The cache file of ``args``: a hash of its settings, the precision and every option of the
+    task (``tasks.describe``: a change of a task's default, e.g. its cost, makes a new one)."""
+    settings = json.dumps({**dataclasses.asdict(args), "x64": jax.config.jax_enable_x64,
+                           "task_options": tasks.describe(tasks.make(args.task))}, sort_keys=True)
     digest = hashlib.sha256(settings.encode()).hexdigest()[:12]
     return os.path.join(cache_dir, f"scenario_{args.task}_{digest}.pkl")
 

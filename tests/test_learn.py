@@ -143,14 +143,13 @@ def test_success_statistics():
     assert learn_report.wilson_interval(0, 10)[0] == pytest.approx(0.0, abs=1e-12)
 
 
-def test_sweep_runs_the_chosen_cells(tmp_path):
+def test_sweep_rejects_bad_cells_and_engines():
     from harness import sweep
 
-    sweep.main(["--cells", "1", "--repeats", "1", "--methods", "tp", "--workers", "1", "--out", str(tmp_path),
-                "--learn-args", " ".join(TINY[2:])])  # cell 1: the cart-pole, angle cost, k = 1
-    assert (tmp_path / "learn_cartpole_angle_k1_quick.csv").exists()
     with pytest.raises(ValueError, match="cells must be"):
         sweep.main(["--cells", "42"])
+    with pytest.raises(ValueError, match="valid engines"):
+        sweep.main(["--engine", "dask"])
 
 
 def test_a_batched_learning_run_is_each_seed_run_alone():
@@ -193,7 +192,9 @@ def test_a_batched_learning_run_is_each_seed_run_alone():
 def test_the_ray_engine_writes_the_local_engines_rows(tmp_path):
     """A two-cell sweep (cart-pole, angle cost, k = 0.01 and 1) on a local Ray instance writes
     the rows that the local process pool writes for the same cells and seeds (all but the
-    timing column; equal to round-off: the same computation in other processes)."""
+    timing column; equal to round-off: the same computation in other processes). Slow (both
+    engines start processes that compile everything anew); it is also the test of the local
+    engine."""
     ray = pytest.importorskip("ray", reason='the ray extra: pip install -e ".[ray]"')
     from harness import sweep
 

@@ -111,7 +111,11 @@ def horizon_grad(horizon_loss):
     return jax.jit(jax.grad(horizon_loss))
 
 
+@pytest.mark.slow
 def test_mjx_unicycle_gradient_is_finite_and_matches_finite_differences(states, horizon_loss, horizon_grad):
+    """Slow (about 2 min: reverse mode through the contact solver compiles slowly). The default
+    suite keeps the cart-pole's MJX gradient against finite differences and lowers this
+    gradient's program (test_linalg)."""
     controls = jnp.array([[2.0, 10.0], [-3.0, -8.0], [1.0, 15.0]])
     inputs = jnp.concatenate([states[0], controls.ravel()])
     grad = np.asarray(horizon_grad(inputs))
@@ -122,15 +126,21 @@ def test_mjx_unicycle_gradient_is_finite_and_matches_finite_differences(states, 
     np.testing.assert_allclose(grad, fd, rtol=0.0, atol=FD_TOL * np.max(np.abs(fd)))
 
 
-def test_mjx_unicycle_stops_at_the_fall(task, batched_step, horizon_grad, unicycle_falling_state):
+def test_mjx_unicycle_stops_at_the_fall(task, batched_step, unicycle_falling_state):
     """As ``Task.step`` (tests/test_policies_rollout.py, the same state): the MJX sub-steps
     stop at the first fallen state. Without the stop this state's step was NaN (the joint
-    chain locks at |theta| = pi/2), and so was every gradient through it."""
+    chain locks at |theta| = pi/2), and so was every gradient through it (the next test)."""
     z, u = unicycle_falling_state
     z1 = np.asarray(batched_step(jnp.tile(z, (NUM_STATES, 1)), jnp.tile(u, (NUM_STATES, 1))))[0]
     assert np.all(np.isfinite(z1)) and bool(task.fallen(z1))
     held = np.asarray(batched_step(jnp.tile(z1, (NUM_STATES, 1)), jnp.tile(u, (NUM_STATES, 1))))[0]
     np.testing.assert_allclose(held, z1, rtol=0, atol=1e-12)  # a fallen state stays put
+
+
+@pytest.mark.slow
+def test_mjx_unicycle_gradient_through_the_fall_is_finite(horizon_grad, unicycle_falling_state):
+    """Slow with the gradient test above (they share its compilation)."""
+    z, u = unicycle_falling_state
     assert np.all(np.isfinite(np.asarray(horizon_grad(jnp.concatenate([z, jnp.tile(u, HORIZON)])))))
 
 
