@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from numerics.distances import scaled_sq_distances
 from numerics.linalg import cholesky, solve_lower, solve_lower_t
 from models.prediction import Prediction
 from tasks.base import Task, check_vector
@@ -376,7 +377,7 @@ def fit(data: GPData, log_hyp0: jax.Array | None = None, num_steps: int = 100,
 
 def _predict_one(log_hyp_e, chol_inv, alpha, inputs, mask, x):
     ls, sf2, sn2 = _split(log_hyp_e)
-    k = sf2 * jnp.exp(-0.5 * jnp.sum(((inputs - x) / ls) ** 2, axis=1))
+    k = sf2 * jnp.exp(-0.5 * scaled_sq_distances(inputs, x, ls))
     k = jnp.where(mask, k, 0.0)
     v = chol_inv @ k  # = L^-1 k
     # sf^2 - |L^-1 k|^2 >= 0 in exact arithmetic; the clip only removes round-off below 0.

@@ -16,6 +16,7 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from numerics.distances import scaled_sq_distances
 from numerics.linalg import solve_det
 from tasks.forms import PolicyForm
 
@@ -109,8 +110,8 @@ def rbf_preactivation(net: RBFNetwork, f: jax.Array) -> jax.Array:
     """``pi~(f) = sum_i beta_i exp(-1/2 (f - c_i)^T Lambda^-1 (f - c_i))``, (U,)."""
 
     def one_output(log_ell, beta_u):
-        diff = (f - net.centres) / jnp.exp(log_ell)
-        return RBF_SIGNAL_STD**2 * jnp.exp(-0.5 * jnp.sum(diff**2, axis=-1)) @ beta_u
+        sq = scaled_sq_distances(net.centres, f, jnp.exp(log_ell))
+        return RBF_SIGNAL_STD**2 * jnp.exp(-0.5 * sq) @ beta_u
 
     return jax.vmap(one_output)(net.log_lengthscales, net.weights)
 
