@@ -131,11 +131,19 @@ class Trajectory(NamedTuple):
         return jnp.cumsum(self.costs[::-1], axis=0)[::-1]
 
 
+def standard_normal(key: jax.Array, shape: tuple[int, ...], dtype) -> jax.Array:
+    """N(0, 1) draws made in JAX's default float (float64 under ``jax_enable_x64``) and cast to
+    ``dtype``: one key gives the same numbers, rounded, in float32 and float64 (common random
+    numbers to compare the two precisions with)."""
+    return jax.random.normal(key, shape, jnp.result_type(float)).astype(dtype)
+
+
 def draw_noise(problem: Problem, key: jax.Array, num_particles: int, dtype):
-    """Initial particles s0 (P, S) and the standard-normal noise eps (T, P, S) of a rollout."""
+    """Initial particles s0 (P, S) and the standard-normal noise eps (T, P, S) of a rollout (both
+    drawn in the default float, then cast to ``dtype``)."""
     k_init, k_eps = jax.random.split(key)
     s0 = jax.vmap(problem.initial_state)(jax.random.split(k_init, num_particles)).astype(dtype)
-    eps = jax.random.normal(k_eps, (problem.horizon,) + s0.shape, dtype)
+    eps = standard_normal(k_eps, (problem.horizon,) + s0.shape, dtype)
     return s0, eps
 
 

@@ -16,7 +16,8 @@ import dataclasses
 
 import jax
 
-from estimators.base import Estimate, Problem, draw_noise, particle_estimate, particle_gradients, rollout, theta_dtype
+from estimators.base import (Estimate, Problem, draw_noise, particle_estimate, particle_gradients, rollout,
+                             standard_normal, theta_dtype)
 from numerics.linalg import cholesky
 
 
@@ -41,7 +42,7 @@ class Reparameterisation:
         resample, xi = None, None
         if self.gaussian_resampling:
             resample = gaussian_resample
-            xi = jax.random.normal(jax.random.fold_in(key, 1), eps.shape, eps.dtype)
+            xi = standard_normal(jax.random.fold_in(key, 1), eps.shape, eps.dtype)
 
         def objective(nets):
             traj = rollout(problem, nets, s0, eps, resample=resample, resample_noise=xi)

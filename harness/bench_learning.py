@@ -31,7 +31,7 @@ import pandas as pd
 
 import tasks
 from estimators.base import task_problem
-from harness.episodic import add_episode, evaluate_policy, policy_optimiser
+from harness.episodic import add_episode, evaluate_policy, in_precision, policy_optimiser
 from harness.learn import METHODS, PRESETS
 from models import gp
 from tasks.rollout import run_episode
@@ -64,10 +64,8 @@ def buffers(task, key, num_trials: int):
 def optimiser_seconds(problem, posterior, theta, method: str, settings: dict, timed_steps: int, dtype):
     """(seconds per optimiser step, compile seconds) at this posterior, in ``dtype``."""
     name, overrides = METHODS[method]
-    problem = dataclasses.replace(problem, model_params=jax.tree.map(
-        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, posterior), **overrides)
-    theta = jax.tree.map(lambda x: x.astype(dtype), theta)
-    optimise = jax.jit(policy_optimiser(name, timed_steps, settings["particles"]))
+    problem = dataclasses.replace(problem, model_params=posterior, **overrides)
+    optimise = jax.jit(in_precision(policy_optimiser(name, timed_steps, settings["particles"]), dtype))
     key = jax.random.key(0)
     start = time.perf_counter()
     compiled = optimise.lower(problem, theta, key).compile()

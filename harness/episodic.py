@@ -147,6 +147,23 @@ def policy_optimiser(estimator_name: str, num_steps: int, num_particles: int):
     return optimise
 
 
+def cast_floating(tree, dtype):
+    """Every floating leaf of ``tree`` cast to ``dtype`` (integer and boolean leaves as they are)."""
+    return jax.tree.map(lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, tree)
+
+
+def in_precision(optimise: Callable, dtype) -> Callable:
+    """``optimise`` run on the model's parameters and theta cast to ``dtype``, its theta cast
+    back: float32 particle rollouts on a GP trained and factorised in float64."""
+
+    def run(problem: Problem, theta, key: jax.Array) -> PolicyOptimisation:
+        problem = dataclasses.replace(problem, model_params=cast_floating(problem.model_params, dtype))
+        result = optimise(problem, cast_floating(theta, dtype), key)
+        return result._replace(theta=jax.tree.map(lambda new, old: new.astype(old.dtype), result.theta, theta))
+
+    return run
+
+
 @functools.partial(jax.jit, static_argnames=("task", "policy", "num_runs"))
 def evaluate_policy(task: Task, policy, theta, key: jax.Array, num_runs: int) -> jax.Array:
     """Returns (num_runs,) of the policy on the real system (evaluation only); jitted once

@@ -38,7 +38,7 @@ import numpy as np
 import tasks
 from estimators.base import task_problem
 from harness.cli import parse, str_list
-from harness.episodic import RunState, evaluate_policy, learning_run, policy_optimiser
+from harness.episodic import RunState, evaluate_policy, in_precision, learning_run, policy_optimiser
 from harness.records import ResultTable, load_pickle, save_pickle
 from models import gp
 
@@ -94,6 +94,7 @@ class Args:
     seed: int = 0
     out: str = "reports"
     x64: bool = True
+    rollout_float32: bool = False
     learned_trials: int = -1
     optimiser_steps: int = -1
     particles: int = -1
@@ -132,7 +133,13 @@ class Args:
         """The settings that ``method`` uses, as a CSV key: PILCO ignores the particle
         optimiser's steps and particles; the particle methods ignore PILCO's steps."""
         unused = PARTICLE_ONLY if METHODS[method][0] == "pilco" else ("pilco_steps",)
-        return "-".join(f"{key}{value}" for key, value in self.settings.items() if key not in unused)
+        name = "-".join(f"{key}{value}" for key, value in self.settings.items() if key not in unused)
+        return name + ("-rollout_f32" if self.float32_rollouts(method) else "")
+
+    def float32_rollouts(self, method: str) -> bool:
+        """Whether ``method`` optimises on float32 particle rollouts (``rollout_float32``: the
+        particle methods, with the GP trained and factorised in float64; PILCO stays float64)."""
+        return self.rollout_float32 and METHODS[method][0] != "pilco"
 
     @property
     def stem(self) -> str:
@@ -161,6 +168,8 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     name, overrides = METHODS[method]
     steps = settings["pilco_steps"] if name == "pilco" else settings["optimiser_steps"]
     optimise = policy_optimiser(name, steps, settings["particles"])
+    if args.float32_rollouts(method):
+        optimise = in_precision(optimise, jnp.float32)
     problem = task_problem(task, gp.GPModel(task), **overrides)
     keys = jnp.stack([jax.random.key(args.seed + r) for r in repeats])
     evaluate = jax.vmap(lambda th, k: evaluate_policy(task, problem.policy, th, k, num_runs=settings["eval_runs"]))
