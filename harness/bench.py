@@ -2,7 +2,8 @@
 the projected time of one paper-setting learning experiment per method.
 
     python -m harness.bench [--particles 100,300,1000] [--repeats 5] [--estimators ...]
-        [--learning-methods pilco,tp,... ("" to skip)] [--float32-learning-methods tp] [--out reports]
+        [--learning-methods pilco,tp,... ("" to skip)] [--float32-learning-methods tp]
+        [--pseudo-input-learning-methods tp] [--out reports]
 
 Setting: the cart-pole (``pipps`` preset, T = 30) with a GP trained on ``trials`` random
 episodes (15 x 30 = 450 points, as after the paper's last trial), the RBF policy at its
@@ -52,6 +53,7 @@ class Args:
     seed: int = 0
     learning_methods: str = DEFAULT_METHODS
     float32_learning_methods: str = "tp"
+    pseudo_input_learning_methods: str = "tp"
     out: str = "reports"
 
 
@@ -128,7 +130,7 @@ def main(argv=None) -> None:
     learning = None
     if args.learning_methods:
         learning = bench_learning.measure(str_list(args.learning_methods), str_list(args.float32_learning_methods),
-                                          seed=args.seed)
+                                          str_list(args.pseudo_input_learning_methods), seed=args.seed)
         learning.to_csv(os.path.join(args.out, "bench_learning.csv"), index=False)
     write_report(args, table, rate, task, num_points, learning)
 
@@ -142,7 +144,8 @@ def write_report(args: Args, table: pd.DataFrame, rate: float, task, num_points:
         "",
         f"Command: `python -m harness.bench --particles {args.particles} --repeats {args.repeats} "
         f"--trials {args.trials} --learning-methods '{args.learning_methods}' "
-        f"--float32-learning-methods '{args.float32_learning_methods}'`",
+        f"--float32-learning-methods '{args.float32_learning_methods}' "
+        f"--pseudo-input-learning-methods '{args.pseudo_input_learning_methods}'`",
         "",
         f"- Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
         f"JAX {jax.__version__} on {jax.default_backend()}; float64.",

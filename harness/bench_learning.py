@@ -81,10 +81,14 @@ def project(step_s: dict[int, float], rows_per_trial: int, trials: int, steps: i
     return float(steps * np.polyval(coefficients, rows_per_trial * np.arange(1, trials + 1)).clip(0).sum())
 
 
-def measure(methods: list[str], float32_methods: list[str], timed_steps: int = 3, seed: int = 0) -> pd.DataFrame:
-    """A row per (method, dtype): seconds per optimiser step at the timed trials, compile, GP
-    fit and evaluation seconds, and the projected minutes (``optimise_min``, ``total_min``)."""
-    unknown = [m for m in methods + float32_methods if m not in METHODS]
+def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods: list[str] = (),
+            timed_steps: int = 3, seed: int = 0) -> pd.DataFrame:
+    """A row per (method, dtype, RBF form): seconds per optimiser step at the timed trials,
+    compile, GP fit and evaluation seconds, and the projected minutes (``optimise_min``,
+    ``total_min``). ``methods`` run in float64 with the task's default (direct) RBF policy,
+    ``float32_methods`` in float32, ``pseudo_input_methods`` in float64 with PILCO's
+    pseudo-input RBF form (the default before issue 18)."""
+    unknown = [m for m in [*methods, *float32_methods, *pseudo_input_methods] if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown}; valid methods: {list(METHODS)}")
     settings = PAPER_SETTINGS
@@ -95,25 +99,29 @@ def measure(methods: list[str], float32_methods: list[str], timed_steps: int = 3
     fit = jax.jit(lambda d: gp.posterior(gp.train(d, num_steps=settings["gp_steps"]).log_hyp, d))
     fit_s = timed(fit, filled[-1])
     posteriors = {t: gp.truncate(gp.check_posterior(fit(filled[t - 1])), t * task.horizon) for t in TIMED_TRIALS}
-    problem = task_problem(task, gp.GPModel(task))
-    theta = problem.policy.init(jax.random.fold_in(key, 10_000))
-    eval_s = timed(lambda th, k: evaluate_policy(task, problem.policy, th, k, settings["eval_runs"]),
-                   theta, jax.random.fold_in(key, 1))
-    runs = [(m, "float64", jnp.float64) for m in methods] + [(m, "float32", jnp.float32) for m in float32_methods]
+    problems = {form: task_problem(tasks.make("cartpole", rbf_parameterisation=form), gp.GPModel(task))
+                for form in ("direct", "pseudo_inputs")}
+    thetas = {form: problem.policy.init(jax.random.fold_in(key, 10_000)) for form, problem in problems.items()}
+    eval_s = timed(lambda th, k: evaluate_policy(task, problems["direct"].policy, th, k, settings["eval_runs"]),
+                   thetas["direct"], jax.random.fold_in(key, 1))
+    runs = ([(m, "float64", jnp.float64, "direct") for m in methods]
+            + [(m, "float32", jnp.float32, "direct") for m in float32_methods]
+            + [(m, "float64", jnp.float64, "pseudo_inputs") for m in pseudo_input_methods])
     rows = []
-    for index, (method, dtype_name, dtype) in enumerate(runs):
+    for index, (method, dtype_name, dtype, form) in enumerate(runs):
         steps = settings["pilco_steps"] if METHODS[method][0] == "pilco" else settings["optimiser_steps"]
         step_s, compile_s = {}, []
         for t in TIMED_TRIALS:
-            step_s[t], c = optimiser_seconds(problem, posteriors[t], theta, method, settings, timed_steps, dtype)
+            step_s[t], c = optimiser_seconds(problems[form], posteriors[t], thetas[form], method, settings,
+                                             timed_steps, dtype)
             compile_s.append(c)
         optimise_total = project(step_s, task.horizon, settings["learned_trials"], steps)
         total = optimise_total + settings["learned_trials"] * (np.mean(compile_s) + fit_s + eval_s)
-        rows.append({"method": method, "dtype": dtype_name, "steps_per_trial": steps,
+        rows.append({"method": method, "dtype": dtype_name, "rbf": form, "steps_per_trial": steps,
                      **{f"step_s_trial{t}": s for t, s in step_s.items()},
                      "compile_s": float(np.mean(compile_s)), "gp_fit_s": fit_s, "eval_s": eval_s,
                      "optimise_min": optimise_total / 60, "total_min": total / 60})
-        print(f"[{index + 1}/{len(runs)}] learning {method} {dtype_name}: {total / 60:.1f} min projected "
+        print(f"[{index + 1}/{len(runs)}] learning {method} {dtype_name} {form}: {total / 60:.1f} min projected "
               f"(step {', '.join(f'{s:.3f}' for s in step_s.values())} s)", file=sys.stderr, flush=True)
     return pd.DataFrame(rows)
 
@@ -121,7 +129,7 @@ def measure(methods: list[str], float32_methods: list[str], timed_steps: int = 3
 def report_lines(table: pd.DataFrame) -> list[str]:
     """The markdown section of ``bench.md``."""
     settings = PAPER_SETTINGS
-    shown = table[["method", "dtype", "steps_per_trial"] + [c for c in table.columns if c.startswith("step_s")]
+    shown = table[["method", "dtype", "rbf", "steps_per_trial"] + [c for c in table.columns if c.startswith("step_s")]
                   + ["compile_s", "gp_fit_s", "eval_s", "optimise_min", "total_min"]]
     return [
         "## One paper-setting learning experiment per method (projected)",
@@ -134,7 +142,11 @@ def report_lines(table: pd.DataFrame) -> list[str]:
         f"measured at learned trials {', '.join(map(str, TIMED_TRIALS))} (30 t rows), interpolated "
         "quadratically in the rows and summed over the trials; plus per trial one compilation, one GP fit and "
         "the evaluation runs, each measured once. A PILCO step's cost varies with its line search.",
-        "- Target (issue 5): TP under 10 minutes on 2 cores.",
+        "- Target (issue 18): a TP experiment in at most 20 minutes on 2 cores, 4x faster than the 86 minutes "
+        "projected before it (the previous report: TP, float64, PILCO's pseudo-input RBF form, the SE kernels' "
+        "differences kept per particle by reverse mode; 2 cores, same machine kind). Rows `rbf pseudo_inputs` "
+        "time that policy form with today's code; the change of the kernels' distances "
+        "(`numerics/distances.py`) is in both.",
         "",
         shown.to_markdown(index=False, floatfmt=".3g"),
         "",
