@@ -12,7 +12,7 @@ where ``zeta_{i,t+1}`` depends on theta through the policy at the fixed sample `
 - BIW-LR: ``W_ij = c_ij (G_j - b_i)``, ``c_ij = p(s_j | zeta_i) / sum_k p(s_j | zeta_k)``
   (each sample weighted against the particles' mixture), and the normalised importance-
   sampled leave-one-out baseline ``b_i = sum_{j != i} c_ij G_j / sum_{j != i} c_ij``.
-  O(P^2 S) per step, in log space.
+  O(P^2 S) per step, in log space, as matrix products (no (P, P, S) temporaries).
 """
 
 from __future__ import annotations
@@ -37,10 +37,24 @@ class ScoreStatistics(NamedTuple):
     w: jax.Array
 
 
+def centred(zeta: Zeta, s: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The samples and the means less the samples' mean per dimension, (P, S) each: the
+    matrix-product forms below expand squares of differences, and centring keeps the terms
+    they cancel small (round-off ~1e-16 |s - c|^2 / sd^2 in float64)."""
+    centre = jnp.mean(s, axis=0)
+    return s - centre, zeta.mean - centre
+
+
 def log_density_matrix(zeta: Zeta, s: jax.Array) -> jax.Array:
-    """``log p(s_j | zeta_i)`` for all pairs, (P, P) [i, j], for diagonal Gaussians."""
-    z = (s[None, :, :] - zeta.mean[:, None, :]) / zeta.std[:, None, :]
-    return jnp.sum(-0.5 * z**2 - jnp.log(zeta.std[:, None, :]), axis=-1) - 0.5 * s.shape[-1] * jnp.log(2 * jnp.pi)
+    """``log p(s_j | zeta_i)`` for all pairs, (P, P) [i, j], for diagonal Gaussians. With
+    ``tau = 1 / sd^2`` and centred samples and means (``centred``), the squared distances are
+    ``sum_d tau_id (s_jd - m_id)^2 = (tau s^2T)_ij - 2 ((tau m) s^T)_ij + sum_d tau_id m_id^2``:
+    two (P, S) x (S, P) products instead of (P, P, S) temporaries."""
+    s_c, m_c = centred(zeta, s)
+    tau = 1.0 / zeta.std**2
+    quad = tau @ (s_c**2).T - 2.0 * (tau * m_c) @ s_c.T + jnp.sum(tau * m_c**2, axis=1)[:, None]
+    log_norm = jnp.sum(jnp.log(zeta.std), axis=1)[:, None] + 0.5 * s.shape[-1] * jnp.log(2 * jnp.pi)
+    return -0.5 * jnp.maximum(quad, 0.0) - log_norm  # round-off can take quad below 0
 
 
 def leave_one_out_baseline(G: jax.Array) -> jax.Array:
@@ -70,9 +84,12 @@ def biw_statistics(zeta: Zeta, s: jax.Array, G: jax.Array, baseline: bool = True
         # finite even when every c_ij (j != i) underflows (particles far apart).
         off_diagonal = jnp.where(jnp.eye(c.shape[0], dtype=bool), -jnp.inf, log_c)
         W = W - c * (jax.nn.softmax(off_diagonal, axis=1) @ G)[:, None]
-    r = s[None, :, :] - zeta.mean[:, None, :]
-    stats = ScoreStatistics(zeta.mean, jnp.einsum("ij,ijd->id", W, r**2), jnp.einsum("ij,ijd->id", W, r),
-                            W.sum(axis=1))
+    # A_i = sum_j W_ij (s_j - m_i)^2 and B_i = sum_j W_ij (s_j - m_i), expanded (centred) into
+    # products with W: (P, P) x (P, S).
+    s_c, m_c = centred(zeta, s)
+    w = W.sum(axis=1)
+    Ws, Ws2 = W @ s_c, W @ s_c**2
+    stats = ScoreStatistics(zeta.mean, Ws2 - 2.0 * m_c * Ws + m_c**2 * w[:, None], Ws - m_c * w[:, None], w)
     ess = jnp.mean(c.sum(axis=1) ** 2 / jnp.sum(c**2, axis=1))
     return stats, ess
 

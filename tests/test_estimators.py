@@ -189,6 +189,35 @@ def test_registry_errors():
         estimators.make("rp_fs", seed=1)
 
 
+def test_biw_statistics_match_the_pairwise_formulas():
+    """The matrix-product forms of BIW-LR's statistics against the (P, P, S) formulas written
+    out in numpy: log p(s_j | zeta_i), and A_i = sum_j W_ij (s_j - m_i)^2, B_i = sum_j W_ij
+    (s_j - m_i) with W the baselined weights. Samples far from the origin (offset 30) and
+    sds down to 0.003 (the unicycle's observation noise) test the expansion's round-off:
+    rtol 1e-8."""
+    from estimators.base import Zeta
+    from estimators.likelihood_ratio import biw_statistics, log_density_matrix
+
+    k = jax.random.split(jax.random.key(3), 4)
+    mean = 30.0 + jax.random.normal(k[0], (40, 3))
+    std = jnp.exp(jax.random.uniform(k[1], (40, 3), minval=np.log(0.003), maxval=np.log(2.0)))
+    s = mean + std * jax.random.normal(k[2], (40, 3))
+    G = 10.0 * jax.random.uniform(k[3], (40,))
+    m, sd, x = np.asarray(mean), np.asarray(std), np.asarray(s)
+    r = x[None, :, :] - m[:, None, :]  # [i, j, d]
+    log_p = np.sum(-0.5 * (r / sd[:, None, :]) ** 2 - np.log(sd[:, None, :]) - 0.5 * np.log(2 * np.pi), -1)
+    np.testing.assert_allclose(log_density_matrix(Zeta(mean, std), s), log_p, rtol=1e-8)
+    log_c = log_p - np.logaddexp.reduce(log_p, axis=0, keepdims=True)
+    others = np.where(np.eye(40, dtype=bool), -np.inf, log_c)  # b_i: a softmax over j != i, in log space
+    soft = np.exp(others - others.max(axis=1, keepdims=True))
+    baseline = (soft / soft.sum(axis=1, keepdims=True)) @ np.asarray(G)
+    W = np.exp(log_c) * (np.asarray(G)[None, :] - baseline[:, None])
+    stats, _ = biw_statistics(Zeta(mean, std), s, G)
+    np.testing.assert_allclose(stats.A, np.einsum("ij,ijd->id", W, r**2), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(stats.B, np.einsum("ij,ijd->id", W, r), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(stats.w, W.sum(1), rtol=1e-10, atol=1e-12)
+
+
 def test_biw_baseline_is_finite_when_particles_do_not_overlap():
     """Particles 1e3 standard deviations apart: every off-diagonal mixture weight underflows,
     and the log-space baseline must stay finite. In that limit b_i is the cost-to-go of the
