@@ -412,8 +412,9 @@ def predict_difference(post: GPPosterior, x: jax.Array) -> Prediction:
 
     Per output e: mean = k_*^T alpha; model_var = sf^2 - |L^-1 k_*|^2 (= sf^2 - k_*^T K^-1 k_*,
     clipped at 0 against round-off), with L^-1 the stored ``chol_inv``; noise_var = sn^2. Each
-    (E,), in the posterior's dtype. Only elementwise ops and matrix products: O(N^2) per output,
-    and every transformation (vmap over particles, grad, jvp, jacfwd) applies.
+    (E,), in the posterior's dtype. Only elementwise ops and matrix products: O(N^2) per output
+    (``explained_variance`` carries a custom JVP), and every transformation (vmap over
+    particles, grad, jvp, jacfwd) applies.
     """
     check_vector("x (GP input)", x, post.inputs.shape[-1])
     x = jnp.asarray(x, post.inputs.dtype)

@@ -399,3 +399,21 @@ def test_numerically_singular_kernel_makes_check_posterior_raise():
     batch = jax.vmap(gp.posterior, in_axes=(0, None))(jnp.asarray(np.stack([good, bad])), data)
     with pytest.raises(gp.CholeskyError, match=r"\[\[1, 1\]\]"):
         gp.check_posterior(batch)
+
+
+def test_explained_variance_and_its_custom_derivatives():
+    """``|L^-1 k|^2`` and its custom JVP (tangent ``2 (K^-1 k) . dk``, plus the term of a
+    perturbed L^-1) against autodiff of the plain expression and finite differences, forward
+    and reverse mode, to second order (jax.test_util.check_grads)."""
+    from jax.test_util import check_grads
+
+    chol = jnp.tril(jax.random.normal(jax.random.key(0), (6, 6))) + 3.0 * jnp.eye(6)
+    chol_inv, k = jnp.linalg.inv(chol), jax.random.normal(jax.random.key(1), (6,))
+    plain = lambda a, b: jnp.sum((a @ b) ** 2)  # noqa: E731
+    np.testing.assert_allclose(gp.explained_variance(chol_inv, k), plain(chol_inv, k), rtol=1e-14)
+    for got, want in zip(jax.grad(gp.explained_variance, argnums=(0, 1))(chol_inv, k),
+                         jax.grad(plain, argnums=(0, 1))(chol_inv, k)):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(jax.jacfwd(gp.explained_variance, argnums=1)(chol_inv, k),
+                               jax.grad(plain, argnums=1)(chol_inv, k), rtol=1e-12, atol=1e-14)
+    check_grads(gp.explained_variance, (chol_inv, k), order=2, modes=["fwd", "rev"])
