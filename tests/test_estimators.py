@@ -6,6 +6,8 @@ estimator fails the suite with probability about 20 * 6e-5 ~ 1e-3; the keys are 
 outcome is reproducible.
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -281,7 +283,7 @@ def test_float32_rollouts_agree_with_float64_to_the_estimators_noise():
     estimate = jax.jit(jax.vmap(lambda pr, th, k: tp(pr, th, k, 50), in_axes=(None, None, 0)))
     n, runs = 200, {}
     for dtype in (jnp.float64, jnp.float32):
-        pr = PROBLEM.__class__(**{**problem.__dict__, "model_params": cast_floating(problem.model_params, dtype)})
+        pr = dataclasses.replace(problem, model_params=cast_floating(problem.model_params, dtype))
         e = estimate(pr, cast_floating(theta, dtype), jax.random.split(jax.random.key(8), n))
         grad = np.concatenate([np.asarray(leaf, np.float64).reshape(n, -1) for leaf in jax.tree.leaves(e.grad)], 1)
         runs[dtype] = np.concatenate([np.asarray(e.value, np.float64)[:, None], grad], 1)  # (n, 1 + 305)
