@@ -3,7 +3,7 @@ the projected time of one paper-setting learning experiment per method.
 
     python -m harness.bench [--particles 100,300,1000] [--repeats 5] [--estimators ...]
         [--learning-methods pilco,tp,... ("" to skip)] [--float32-learning-methods tp]
-        [--pseudo-input-learning-methods tp] [--out reports]
+        [--pseudo-input-learning-methods tp] [--fitc-learning-methods tp,pilco] [--out reports]
 
 Setting: the cart-pole (``pipps`` preset, T = 30) with a GP trained on ``trials`` random
 episodes (15 x 30 = 450 points, as after the paper's last trial), the RBF policy at its
@@ -54,6 +54,7 @@ class Args:
     learning_methods: str = DEFAULT_METHODS
     float32_learning_methods: str = "tp"
     pseudo_input_learning_methods: str = "tp"
+    fitc_learning_methods: str = "tp,pilco"
     out: str = "reports"
 
 
@@ -130,7 +131,8 @@ def main(argv=None) -> None:
     learning = None
     if args.learning_methods:
         learning = bench_learning.measure(str_list(args.learning_methods), str_list(args.float32_learning_methods),
-                                          str_list(args.pseudo_input_learning_methods), seed=args.seed)
+                                          str_list(args.pseudo_input_learning_methods),
+                                          str_list(args.fitc_learning_methods), seed=args.seed)
         learning.to_csv(os.path.join(args.out, "bench_learning.csv"), index=False)
     write_report(args, table, rate, task, num_points, learning)
 
@@ -145,7 +147,8 @@ def write_report(args: Args, table: pd.DataFrame, rate: float, task, num_points:
         f"Command: `python -m harness.bench --particles {args.particles} --repeats {args.repeats} "
         f"--trials {args.trials} --learning-methods '{args.learning_methods}' "
         f"--float32-learning-methods '{args.float32_learning_methods}' "
-        f"--pseudo-input-learning-methods '{args.pseudo_input_learning_methods}'`",
+        f"--pseudo-input-learning-methods '{args.pseudo_input_learning_methods}' "
+        f"--fitc-learning-methods '{args.fitc_learning_methods}'`",
         "",
         f"- Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
         f"JAX {jax.__version__} on {jax.default_backend()}; float64.",

@@ -15,7 +15,13 @@ compilation, and adds them up:
   once per trial.
 
 Methods listed in ``float32_methods`` are timed again in float32 (the GP fitted in float64,
-its posterior cast).
+its posterior cast). Methods listed in ``fitc_methods`` are timed again with PILCO's FITC sparse
+GP (``learn --gp-inducing 300``): trials whose data exceed 300 rows optimise on 300 inducing
+inputs, so their step costs what a 300-row step costs (the dense M x M variance factor costs as
+much as the full GP's triangular one); the quadratic then runs through the steps timed at 30
+and 240 rows and at the FITC posterior of trial 15, placed at 300 rows, and is evaluated at
+min(30 t, 300). Their fit is FITC's (the full GP's hyperparameters, then 100 L-BFGS steps on the
+inducing inputs) in those trials.
 """
 
 from __future__ import annotations
@@ -33,13 +39,15 @@ import tasks
 from estimators.base import task_problem
 from harness.episodic import add_episode, evaluate_policy, in_precision, policy_optimiser
 from harness.learn import METHODS, PRESETS
-from models import gp
+from models import gp, sparse_gp
 from tasks.rollout import run_episode
 
 PAPER_SETTINGS = dict(PRESETS["paper"], learned_trials=15)
 """The cart-pole's paper preset (15 learned trials: its `pipps` task preset)."""
 TIMED_TRIALS = (1, 8, 15)
 """Learned trials whose optimiser steps are timed (the data then hold 30 t rows)."""
+NUM_INDUCING = 300
+"""pilco-matlab's cart-pole (settings_cp.m): FITC with 300 inducing inputs past 300 points."""
 
 
 def timed(fn, *args) -> float:
@@ -73,22 +81,22 @@ def optimiser_seconds(problem, posterior, theta, method: str, settings: dict, ti
     return timed(compiled, problem, theta, key) / timed_steps, compile_s
 
 
-def project(step_s: dict[int, float], rows_per_trial: int, trials: int, steps: int) -> float:
-    """Sum over trials t = 1..trials of ``steps`` x the quadratic through the timed
-    (rows, seconds per step) points, evaluated at 30 t rows."""
-    rows = np.array([rows_per_trial * t for t in step_s])
-    coefficients = np.polyfit(rows, np.array(list(step_s.values())), 2)
-    return float(steps * np.polyval(coefficients, rows_per_trial * np.arange(1, trials + 1)).clip(0).sum())
+def project(step_s: dict[int, float], trial_rows: np.ndarray, steps: int) -> float:
+    """``steps`` x the quadratic through the timed (rows, seconds per step) points, summed over
+    the trials' (effective) rows ``trial_rows``."""
+    coefficients = np.polyfit(np.array(list(step_s)), np.array(list(step_s.values())), 2)
+    return float(steps * np.polyval(coefficients, trial_rows).clip(0).sum())
 
 
 def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods: list[str] = (),
-            timed_steps: int = 3, seed: int = 0) -> pd.DataFrame:
-    """A row per (method, dtype, RBF form): seconds per optimiser step at the timed trials,
+            fitc_methods: list[str] = (), timed_steps: int = 3, seed: int = 0) -> pd.DataFrame:
+    """A row per (method, dtype, RBF form, GP): seconds per optimiser step at the timed trials,
     compile, GP fit and evaluation seconds, and the projected minutes (``optimise_min``,
-    ``total_min``). ``methods`` run in float64 with the task's default (direct) RBF policy,
-    ``float32_methods`` in float32, ``pseudo_input_methods`` in float64 with PILCO's
-    pseudo-input RBF form (the default before issue 18)."""
-    unknown = [m for m in [*methods, *float32_methods, *pseudo_input_methods] if m not in METHODS]
+    ``total_min``). ``methods`` run in float64 with the task's default (direct) RBF policy and
+    the full GP, ``float32_methods`` in float32, ``pseudo_input_methods`` in float64 with PILCO's
+    pseudo-input RBF form (the default before issue 18), ``fitc_methods`` in float64 with FITC
+    past ``NUM_INDUCING`` rows (module docstring)."""
+    unknown = [m for m in [*methods, *float32_methods, *pseudo_input_methods, *fitc_methods] if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown}; valid methods: {list(METHODS)}")
     settings = PAPER_SETTINGS
@@ -99,37 +107,48 @@ def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods
     fit = jax.jit(lambda d: gp.posterior(gp.train(d, num_steps=settings["gp_steps"]).log_hyp, d))
     fit_s = timed(fit, filled[-1])
     posteriors = {t: gp.truncate(gp.check_posterior(fit(filled[t - 1])), t * task.horizon) for t in TIMED_TRIALS}
+    last = max(TIMED_TRIALS)
+    fit_fitc = jax.jit(sparse_gp.fitter(NUM_INDUCING, int(filled[last - 1].num_valid), settings["gp_steps"]))
+    fitc_fit_s = timed(fit_fitc, filled[-1]) if fitc_methods else float("nan")
+    posteriors_fitc = posteriors | ({last: gp.check_posterior(fit_fitc(filled[last - 1]))} if fitc_methods else {})
+    trials = np.arange(1, settings["learned_trials"] + 1)
     problems = {form: task_problem(tasks.make("cartpole", rbf_parameterisation=form), gp.GPModel(task))
                 for form in ("direct", "pseudo_inputs")}
     thetas = {form: problem.policy.init(jax.random.fold_in(key, 10_000)) for form, problem in problems.items()}
     eval_s = timed(lambda th, k: evaluate_policy(task, problems["direct"].policy, th, k, settings["eval_runs"]),
                    thetas["direct"], jax.random.fold_in(key, 1))
-    runs = ([(m, "float64", jnp.float64, "direct") for m in methods]
-            + [(m, "float32", jnp.float32, "direct") for m in float32_methods]
-            + [(m, "float64", jnp.float64, "pseudo_inputs") for m in pseudo_input_methods])
+    runs = ([(m, "float64", jnp.float64, "direct", 0) for m in methods]
+            + [(m, "float32", jnp.float32, "direct", 0) for m in float32_methods]
+            + [(m, "float64", jnp.float64, "pseudo_inputs", 0) for m in pseudo_input_methods]
+            + [(m, "float64", jnp.float64, "direct", NUM_INDUCING) for m in fitc_methods])
     rows = []
-    for index, (method, dtype_name, dtype, form) in enumerate(runs):
+    for index, (method, dtype_name, dtype, form, inducing) in enumerate(runs):
         steps = settings["pilco_steps"] if METHODS[method][0] == "pilco" else settings["optimiser_steps"]
+        chosen = posteriors_fitc if inducing else posteriors
         step_s, compile_s = {}, []
         for t in TIMED_TRIALS:
-            step_s[t], c = optimiser_seconds(problems[form], posteriors[t], thetas[form], method, settings,
+            step_s[t], c = optimiser_seconds(problems[form], chosen[t], thetas[form], method, settings,
                                              timed_steps, dtype)
             compile_s.append(c)
-        optimise_total = project(step_s, task.horizon, settings["learned_trials"], steps)
-        total = optimise_total + settings["learned_trials"] * (np.mean(compile_s) + fit_s + eval_s)
-        rows.append({"method": method, "dtype": dtype_name, "rbf": form, "steps_per_trial": steps,
+        rows_cap = inducing or np.inf
+        effective_rows = {min(task.horizon * t, rows_cap): s for t, s in step_s.items()}
+        optimise_total = project(effective_rows, np.minimum(task.horizon * trials, rows_cap), steps)
+        fits = np.where(task.horizon * trials > rows_cap, fitc_fit_s, fit_s).sum()
+        total = optimise_total + fits + settings["learned_trials"] * (np.mean(compile_s) + eval_s)
+        gp_name = f"fitc{inducing}" if inducing else "full"
+        rows.append({"method": method, "dtype": dtype_name, "rbf": form, "gp": gp_name, "steps_per_trial": steps,
                      **{f"step_s_trial{t}": s for t, s in step_s.items()},
-                     "compile_s": float(np.mean(compile_s)), "gp_fit_s": fit_s, "eval_s": eval_s,
-                     "optimise_min": optimise_total / 60, "total_min": total / 60})
-        print(f"[{index + 1}/{len(runs)}] learning {method} {dtype_name} {form}: {total / 60:.1f} min projected "
-              f"(step {', '.join(f'{s:.3f}' for s in step_s.values())} s)", file=sys.stderr, flush=True)
+                     "compile_s": float(np.mean(compile_s)), "gp_fit_s": fit_s if not inducing else fitc_fit_s,
+                     "eval_s": eval_s, "optimise_min": optimise_total / 60, "total_min": total / 60})
+        print(f"[{index + 1}/{len(runs)}] learning {method} {dtype_name} {form} {gp_name}: {total / 60:.1f} min "
+              f"projected (step {', '.join(f'{s:.3f}' for s in step_s.values())} s)", file=sys.stderr, flush=True)
     return pd.DataFrame(rows)
 
 
 def report_lines(table: pd.DataFrame) -> list[str]:
     """The markdown section of ``bench.md``."""
     settings = PAPER_SETTINGS
-    shown = table[["method", "dtype", "rbf", "steps_per_trial"] + [c for c in table.columns if c.startswith("step_s")]
+    shown = table[["method", "dtype", "rbf", "gp", "steps_per_trial"] + [c for c in table.columns if c.startswith("step_s")]
                   + ["compile_s", "gp_fit_s", "eval_s", "optimise_min", "total_min"]]
     return [
         "## One paper-setting learning experiment per method (projected)",
@@ -141,7 +160,10 @@ def report_lines(table: pd.DataFrame) -> list[str]:
         "- Projected, not timed whole (one experiment takes over an hour here): seconds per optimiser step "
         f"measured at learned trials {', '.join(map(str, TIMED_TRIALS))} (30 t rows), interpolated "
         "quadratically in the rows and summed over the trials; plus per trial one compilation, one GP fit and "
-        "the evaluation runs, each measured once. A PILCO step's cost varies with its line search.",
+        "the evaluation runs, each measured once. A PILCO step's cost varies with its line search. Rows "
+        f"`gp fitc{NUM_INDUCING}`: PILCO's FITC sparse GP once the data exceed {NUM_INDUCING} rows (trials 11-15; "
+        f"their steps cost a {NUM_INDUCING}-row step, their `gp_fit_s` is FITC's: hyperparameters, then the "
+        "inducing inputs); the others use the full GP throughout.",
         "- Target (issue 18): a TP experiment in at most 20 minutes on 2 cores, 4x faster than the 86 minutes "
         "projected before it (the previous report: TP, float64, PILCO's pseudo-input RBF form, the SE kernels' "
         "differences kept per particle by reverse mode; 2 cores, same machine kind). Rows `rbf pseudo_inputs` "

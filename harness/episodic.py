@@ -21,7 +21,7 @@ import estimators
 from estimators.base import Problem
 from estimators.pilco import pilco_objective
 from harness.optim import LEARNING_RATE, MOMENTUM, pipps_sgd
-from models import gp
+from models import gp, sparse_gp
 from tasks.base import Task
 from tasks.rollout import Episode, run_episode, transitions
 
@@ -197,7 +197,8 @@ class TrialRecord(NamedTuple):
 def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
                  optimise: Callable[[Problem, Any, jax.Array], Any], gp_steps: int,
                  on_trial: Callable[[TrialRecord, gp.GPData], None] = lambda record, data: None,
-                 batched: bool = False, trim_model: bool = False, resume: RunState | None = None):
+                 batched: bool = False, trim_model: bool = False, resume: RunState | None = None,
+                 num_inducing: int = 0):
     """The paper's episodic loop: the task's random trials, then ``num_learned`` times: fit the
     GP to all data (``gp_steps`` L-BFGS steps), ``theta = optimise(problem with the GP, theta,
     key).theta``, one real trial, add its data. Keys: random trial r ``fold_in(key, r)``, theta0
@@ -213,6 +214,9 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
     ``trim_model``: optimise on the posterior cut to the rows held, rounded up to whole
     episodes (``gp.truncate``): prediction costs O(rows^2) instead of O(capacity^2), for one
     compilation of the optimiser per distinct size; worth it when the optimisation is long.
+
+    ``num_inducing``: once the data hold more rows, fit PILCO's FITC sparse GP with that many
+    inducing inputs instead of the full GP (``models.sparse_gp.fitter``; 0: always the full GP).
 
     ``resume``: continue from that state (the data and theta ``on_trial`` saw after trial
     ``trials_done - 1``) instead of starting afresh; the trials after it are the same
@@ -232,12 +236,12 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
         on_trial(TrialRecord(trial, False, episode, None), data)
     if theta is None:
         theta = over_seeds(problem.policy.init)(seeds_fold_in(key, 10_000))
-    fit = over_seeds(lambda d: gp.posterior(gp.train(d, num_steps=gp_steps).log_hyp, d))
     policy_episode = over_seeds(lambda k, th: run_episode(task, k, problem.policy, th))
     for trial in range(max(resume.trials_done - task.num_random_trials, 0), num_learned):
-        posterior = gp.check_posterior(fit(data))
-        if trim_model:
-            whole_episodes = -(-int(np.max(np.asarray(data.num_valid))) // task.horizon) * task.horizon
+        rows_held = int(np.max(np.asarray(data.num_valid)))
+        posterior = gp.check_posterior(over_seeds(sparse_gp.fitter(num_inducing, rows_held, gp_steps))(data))
+        if trim_model and not sparse_gp.uses_fitc(num_inducing, rows_held):
+            whole_episodes = -(-rows_held // task.horizon) * task.horizon
             posterior = gp.truncate(posterior, whole_episodes)
         problem = dataclasses.replace(problem, model_params=posterior)
         result = over_seeds(optimise)(problem, theta, seeds_fold_in(key, 20_000 + trial))

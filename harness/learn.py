@@ -2,11 +2,14 @@
 
     python -m harness.learn --task cartpole --cost angle --noise-k 1 \
         --methods pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n --repeats R --preset quick|quick_p50|paper \
-        [--task-options angle_cost_scale=1,rbf_parameterisation=pseudo_inputs]
+        [--task-options angle_cost_scale=1,rbf_parameterisation=pseudo_inputs] [--gp-inducing 300]
 
 Each experiment (method, repeat) is one learning run (``harness.episodic.learning_run``): the
 task's random trial(s), then per learned trial: fit the GP to all data, optimise the policy on
-it, run one real trial and add its data. Particle methods take ``optimiser_steps`` steps of
+it, run one real trial and add its data. ``--gp-inducing M`` (0, the default: the full GP) fits
+PILCO's FITC sparse GP with M inducing inputs once the data exceed M rows
+(``models.sparse_gp``; pilco-matlab's cart-pole uses 300); the settings key then ends in
+``-fitcM``. Particle methods take ``optimiser_steps`` steps of
 the paper's optimiser with ``particles`` particles; PILCO takes ``pilco_steps`` L-BFGS steps on
 its deterministic objective. After every trial the policy is scored by ``eval_runs`` runs on
 the real system (evaluation only; their data are not used). Repeat r uses seed ``seed + r``.
@@ -101,6 +104,7 @@ class Args:
     eval_runs: int = -1
     pilco_steps: int = -1
     gp_steps: int = -1
+    gp_inducing: int = 0
     batch: int = 10
 
     def __post_init__(self):
@@ -112,6 +116,9 @@ class Args:
         self.make_task()  # fails with the valid tasks and options
         if self.repeats < 1 or self.batch < 1:
             raise ValueError("repeats and batch must be >= 1")
+        if self.gp_inducing < 0:
+            raise ValueError(f"gp_inducing must be >= 0 (0: the full GP; PILCO's cart-pole: 300); got "
+                             f"{self.gp_inducing}")
 
     def make_task(self):
         """The task with cost, noise_k and ``task_options`` ("NAME=VALUE,...", e.g.
@@ -134,7 +141,8 @@ class Args:
         optimiser's steps and particles; the particle methods ignore PILCO's steps."""
         unused = PARTICLE_ONLY if METHODS[method][0] == "pilco" else ("pilco_steps",)
         name = "-".join(f"{key}{value}" for key, value in self.settings.items() if key not in unused)
-        return name + ("-rollout_f32" if self.float32_rollouts(method) else "")
+        return (name + (f"-fitc{self.gp_inducing}" if self.gp_inducing else "")
+                + ("-rollout_f32" if self.float32_rollouts(method) else ""))
 
     def float32_rollouts(self, method: str) -> bool:
         """Whether ``method`` optimises on float32 particle rollouts (``rollout_float32``: the
@@ -205,7 +213,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
               f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s)", file=sys.stderr, flush=True)
 
     learning_run(task, problem, keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
-                 batched=True, trim_model=True, resume=resume)
+                 batched=True, trim_model=True, resume=resume, num_inducing=args.gp_inducing)
     return rows
 
 

@@ -116,7 +116,7 @@ def add_data(data: GPData, inputs: jax.Array, targets: jax.Array, mask: jax.Arra
     )
 
 
-def _clean(data: GPData) -> tuple[jax.Array, jax.Array, jax.Array]:
+def clean(data: GPData) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Inputs (N, D) and targets (N, E) with padding rows zeroed (so NaN padding stays inert)."""
     x = jnp.where(data.mask[:, None], data.inputs, 0.0)
     y = jnp.where(data.mask[:, None], data.targets, 0.0)
@@ -126,7 +126,7 @@ def _clean(data: GPData) -> tuple[jax.Array, jax.Array, jax.Array]:
 def data_scales(data: GPData) -> tuple[jax.Array, jax.Array]:
     """Masked standard deviations (ddof 1, as MATLAB's ``std``) of the inputs (D,) and the
     targets (E,). A zero spread (a constant column, or fewer than two rows) is replaced by 1."""
-    x, y, mask = _clean(data)
+    x, y, mask = clean(data)
     w = mask.astype(x.dtype)[:, None]
     n = jnp.sum(w)
 
@@ -148,14 +148,14 @@ def init_log_hyp(data: GPData) -> jax.Array:
     return jnp.concatenate([log_ls, log_sf[:, None], (log_sf - math.log(10.0))[:, None]], axis=1)
 
 
-def _split(log_hyp_e: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+def split_hyp(log_hyp_e: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(D+2,) -> length-scales (D,), signal variance sf^2, noise variance sn^2."""
     return jnp.exp(log_hyp_e[:-2]), jnp.exp(2.0 * log_hyp_e[-2]), jnp.exp(2.0 * log_hyp_e[-1])
 
 
-def _kernel_matrix(log_hyp_e: jax.Array, x: jax.Array) -> jax.Array:
+def kernel_matrix(log_hyp_e: jax.Array, x: jax.Array) -> jax.Array:
     """SE-ARD Gram matrix (N, N) of one output on inputs x (N, D), without noise."""
-    ls, sf2, _ = _split(log_hyp_e)
+    ls, sf2, _ = split_hyp(log_hyp_e)
     z = x / ls
     sq = jnp.sum(z * z, axis=1)
     d2 = jnp.maximum(sq[:, None] + sq[None, :] - 2.0 * z @ z.T, 0.0)  # round-off can go below 0
@@ -165,8 +165,8 @@ def _kernel_matrix(log_hyp_e: jax.Array, x: jax.Array) -> jax.Array:
 def _factor(log_hyp_e: jax.Array, x: jax.Array, y: jax.Array, mask: jax.Array):
     """Cholesky factor L (N, N) of ``K_ij m_i m_j + diag(m_i sn^2 + (1 - m_i))`` and
     ``alpha = (L L^T)^-1 y`` (N,) for one output; x (N, D), y (N,) with padding zeroed."""
-    _, _, sn2 = _split(log_hyp_e)
-    k = _kernel_matrix(log_hyp_e, x)
+    _, _, sn2 = split_hyp(log_hyp_e)
+    k = kernel_matrix(log_hyp_e, x)
     k = jnp.where(mask[:, None] & mask[None, :], k, 0.0)
     k = k + jnp.diag(jnp.where(mask, sn2, 1.0))
     chol = cholesky(k)
@@ -187,7 +187,7 @@ def neg_log_marginal_likelihood(log_hyp: jax.Array, data: GPData) -> jax.Array:
 
     log_hyp (E, D+2); only the valid rows of ``data`` count (padding rows are inert).
     """
-    x, y, mask = _clean(data)
+    x, y, mask = clean(data)
     return jnp.sum(jax.vmap(_nlml_one, in_axes=(0, None, 1, None))(log_hyp, x, y, mask))
 
 
@@ -260,7 +260,15 @@ def train(data: GPData, log_hyp0: jax.Array | None = None, num_steps: int = 100,
 @functools.partial(jax.jit, static_argnums=(3,))
 def _train(data: GPData, log_hyp0: jax.Array | None, curb: Curb, num_steps: int) -> TrainResult:
     params0 = init_log_hyp(data) if log_hyp0 is None else jnp.asarray(log_hyp0, data.inputs.dtype)
-    fun = functools.partial(objective, data=data, curb=curb)
+    return TrainResult(*lbfgs_minimise(functools.partial(objective, data=data, curb=curb), params0, num_steps))
+
+
+def lbfgs_minimise(fun, params0: jax.Array, num_steps: int) -> tuple[jax.Array, jax.Array]:
+    """``num_steps`` L-BFGS steps (optax, zoom line search) on the scalar ``fun`` from params0,
+    in a ``lax.scan`` (trace it inside jit). An update whose parameters or value are not finite
+    is rejected and ends the run (the remaining steps keep the last good iterate, computed
+    under ``lax.cond``). Returns (the iterate with the lowest finite value, the history
+    (num_steps + 1,) of values, the first at params0)."""
     opt = optax.lbfgs()
     value_and_grad = optax.value_and_grad_from_state(fun)
 
@@ -283,11 +291,11 @@ def _train(data: GPData, log_hyp0: jax.Array | None, curb: Curb, num_steps: int)
     _, (iterates, history) = jax.lax.scan(
         step, (params0, opt.init(params0), jnp.zeros((), bool)), None, length=num_steps
     )
-    # iterates[i] is the iterate after step i; history[i] the objective before it.
+    # iterates[i] is the iterate after step i; history[i] the value before it.
     iterates = jnp.concatenate([params0[None], iterates])
     history = jnp.append(history, fun(iterates[-1]))
     best = jnp.argmin(jnp.where(jnp.isfinite(history), history, jnp.inf))
-    return TrainResult(iterates[best], history)
+    return iterates[best], history
 
 
 # ----- the posterior and prediction ----------------------------------------------------------------
@@ -314,7 +322,7 @@ def _posterior_one(log_hyp_e, x, y, mask):
 def posterior(log_hyp: jax.Array, data: GPData) -> GPPosterior:
     """Factorise the masked noisy kernel matrix of each output (jittable; no checks: a failed
     factorisation shows as NaN, see ``check_posterior``)."""
-    x, y, mask = _clean(data)
+    x, y, mask = clean(data)
     chol, chol_inv, alpha = jax.vmap(_posterior_one, in_axes=(0, None, 1, None))(log_hyp, x, y, mask)
     return GPPosterior(inputs=x, mask=mask, log_hyp=log_hyp, chol=chol, chol_inv=chol_inv, alpha=alpha)
 
@@ -400,7 +408,7 @@ def _explained_variance_jvp(primals, tangents):
 
 
 def _predict_one(log_hyp_e, chol_inv, alpha, inputs, mask, x):
-    ls, sf2, sn2 = _split(log_hyp_e)
+    ls, sf2, sn2 = split_hyp(log_hyp_e)
     k = sf2 * jnp.exp(-0.5 * scaled_sq_distances(inputs, x, ls))
     k = jnp.where(mask, k, 0.0)
     # sf^2 - |L^-1 k|^2 >= 0 in exact arithmetic; the clip only removes round-off below 0.

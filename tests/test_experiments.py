@@ -69,17 +69,23 @@ def test_learning_time_projection_sums_the_quadratic_over_trials():
     from harness.bench_learning import project
 
     per_step = lambda rows: 0.1 + 1e-3 * rows + 1e-6 * rows**2  # noqa: E731
-    timed = {t: per_step(30 * t) for t in (1, 8, 15)}
-    expected = 600 * sum(per_step(30 * t) for t in range(1, 16))
-    assert project(timed, 30, 15, 600) == pytest.approx(expected, rel=1e-9)
+    rows = 30 * np.arange(1, 16)
+    timed = {30 * t: per_step(30 * t) for t in (1, 8, 15)}
+    expected = 600 * sum(per_step(r) for r in rows)
+    assert project(timed, rows, 600) == pytest.approx(expected, rel=1e-9)
+    # FITC with 300 inducing inputs: trials past 300 rows cost a 300-row step.
+    capped = {min(r, 300): per_step(min(r, 300)) for r in (30, 240, 450)}
+    assert project(capped, np.minimum(rows, 300), 600) == pytest.approx(
+        600 * sum(per_step(min(r, 300)) for r in rows), rel=1e-9)
 
 
 @pytest.mark.slow
 def test_learning_time_measurement_runs(tmp_path):
     from harness import bench_learning
 
-    table = bench_learning.measure(["lr"], ["lr"], timed_steps=1)
-    assert list(table.dtype) == ["float64", "float32"] and (table.total_min > table.optimise_min).all()
+    table = bench_learning.measure(["lr"], ["lr"], fitc_methods=["lr"], timed_steps=1)
+    assert list(table.dtype) == ["float64", "float32", "float64"] and list(table.gp) == ["full", "full", "fitc300"]
+    assert (table.total_min > table.optimise_min).all()
     assert "paper-setting" in "\n".join(bench_learning.report_lines(table))
 
 

@@ -117,6 +117,25 @@ def test_learning_runs_on_the_unicycle(tmp_path):
     assert np.isfinite(rows[rows.learned].eval_mean).all()
 
 
+def test_gp_inducing_switches_the_learning_run_to_fitc_once_the_data_exceed_it(tmp_path, monkeypatch):
+    """--gp-inducing 40: the first learned trial fits the full GP on 30 rows, the second FITC
+    on 60; the key says so. (PILCO's moment matching on a FITC posterior: test_sparse_gp.)"""
+    import tasks
+    from models import sparse_gp
+
+    calls = []
+    real = sparse_gp.fitc_posterior
+    monkeypatch.setattr(sparse_gp, "fitc_posterior", lambda u, *a: calls.append(u.shape) or real(u, *a))
+    learn.main(TINY + ["--repeats", "1", "--methods", "tp", "--learned-trials", "2", "--gp-inducing", "40",
+                       "--out", str(tmp_path)])
+    rows = pd.read_csv(tmp_path / "learn_cartpole_angle_k1_quick.csv")
+    assert calls == [(40, tasks.make("cartpole").gp_input_dim)]  # traced once under vmap, at trial 2 only
+    assert rows.settings.str.endswith("-fitc40").all()
+    assert np.isfinite(rows[rows.learned].eval_mean).all() and (rows[rows.learned].nonfinite_steps == 0).all()
+    with pytest.raises(ValueError, match="gp_inducing"):
+        learn.main(["--gp-inducing", "-1"])
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--methods", "pilco,ppo"], "valid methods"),
     (["--preset", "huge"], "valid presets"),
