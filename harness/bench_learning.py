@@ -148,7 +148,8 @@ def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods
 def report_lines(table: pd.DataFrame) -> list[str]:
     """The markdown section of ``bench.md``."""
     settings = PAPER_SETTINGS
-    shown = table[["method", "dtype", "rbf", "gp", "steps_per_trial"] + [c for c in table.columns if c.startswith("step_s")]
+    step_columns = [c for c in table.columns if c.startswith("step_s")]
+    shown = table[["method", "dtype", "rbf", "gp", "steps_per_trial"] + step_columns
                   + ["compile_s", "gp_fit_s", "eval_s", "optimise_min", "total_min"]]
     return [
         "## One paper-setting learning experiment per method (projected)",

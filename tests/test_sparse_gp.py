@@ -70,7 +70,8 @@ def test_fitc_matches_dense_numpy_full_and_masked():
         np.testing.assert_allclose(pred.mean, mean, rtol=0, atol=1e-8 * np.abs(y).max())
         np.testing.assert_allclose(pred.model_var, var, rtol=0, atol=1e-8 * sf2.max())
         w_t_w = np.einsum("eki,ekj->eij", post.chol_inv, post.chol_inv)
-        np.testing.assert_allclose(w_t_w, var_mat + sparse_gp.JITTER * k_uu_inv, rtol=0, atol=1e-9 * np.abs(k_uu_inv).max())
+        np.testing.assert_allclose(w_t_w, var_mat + sparse_gp.JITTER * k_uu_inv, rtol=0,
+                                   atol=1e-9 * np.abs(k_uu_inv).max())
         assert np.all(var > 1e-4 * sf2)  # the test points are not degenerate ones
 
 
@@ -80,7 +81,8 @@ def test_fitc_with_the_training_inputs_as_inducing_inputs_is_the_full_gp():
     the NLMLs within 1e-6 relative."""
     x, y, log_hyp, x_test = random_problem(5)
     data = gp.GPData(jnp.asarray(x), jnp.asarray(y), jnp.ones(30, bool))
-    full, sparse = gp.posterior(jnp.asarray(log_hyp), data), sparse_gp.fitc_posterior(jnp.asarray(x), jnp.asarray(log_hyp), data)
+    full = gp.posterior(jnp.asarray(log_hyp), data)
+    sparse = sparse_gp.fitc_posterior(jnp.asarray(x), jnp.asarray(log_hyp), data)
     a, b = predict(full, x_test), predict(sparse, x_test)
     sf2 = np.exp(2 * log_hyp[:, -2])
     np.testing.assert_allclose(b.mean, a.mean, rtol=0, atol=1e-6 * np.abs(y).max())
