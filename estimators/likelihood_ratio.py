@@ -9,10 +9,20 @@ where ``zeta_{i,t+1}`` depends on theta through the policy at the fixed sample `
 (the samples themselves carry no gradient). With G the cost-to-go from t+1:
 
 - LR: ``W = diag(G_i - b_i)``, ``b_i`` the mean of the other particles' G (leave-one-out);
-- BIW-LR: ``W_ij = c_ij (G_j - b_i)``, ``c_ij = p(s_j | zeta_i) / sum_k p(s_j | zeta_k)``
-  (each sample weighted against the particles' mixture), and the normalised importance-
-  sampled leave-one-out baseline ``b_i = sum_{j != i} c_ij G_j / sum_{j != i} c_ij``.
-  O(P^2 S) per step, in log space, as matrix products (no (P, P, S) temporaries).
+- BIW-LR: ``W_ij = c_ij (G_j - b_ij)``, ``c_ij = p(s_j | zeta_i) / sum_k p(s_j | zeta_k)``
+  (each sample weighted against the particles' mixture). O(P^2 S) per step, in log space, as
+  matrix products (no (P, P, S) temporaries).
+
+The baselines (``baseline=``):
+
+- ``"leave_one_out"`` (the paper's): LR's leave-one-out mean; BIW-LR's normalised
+  importance-sampled leave-one-out ``b_ij = b_i = sum_{k != i} c_ik G_k / sum_{k != i} c_ik``.
+  It depends on the samples s_j it multiplies, which biases BIW-LR (the paper says so).
+- ``"pairwise"`` (BIW-LR; for LR it is the leave-one-out): P^2 baselines ``b_ij``
+  (``pairwise_baseline``), each independent of the sample s_j it multiplies and with the
+  same expectation for every j, as the paper proposes to remove the bias: the baseline
+  term's expectation is then exactly 0. O(P^2 S) per step.
+- ``"none"``: no baseline; both estimators are then exactly unbiased.
 """
 
 from __future__ import annotations
@@ -62,28 +72,80 @@ def leave_one_out_baseline(G: jax.Array) -> jax.Array:
     return (G.sum() - G) / (G.shape[0] - 1)
 
 
-def lr_statistics(zeta: Zeta, s: jax.Array, G: jax.Array, baseline: bool = True) -> tuple[ScoreStatistics, jax.Array]:
-    """Statistics for ``W = diag(G - b)`` (b = 0 without ``baseline``); returns them and the
-    effective sample size P."""
-    weight = G - leave_one_out_baseline(G) if baseline else G
+def log_ratio_second_moments(zeta: Zeta) -> jax.Array:
+    """``log E_{s ~ p_k}[(p_i(s) / p_k(s))^2]`` (P, P) [i, k] for the diagonal Gaussians
+    p_i = N(m_i, diag v_i) of one step: per dimension, with ``d = 2 v_k - v_i``,
+    ``log v_k - 1/2 log v_i - 1/2 log d + (m_i - m_k)^2 / d``, summed; +inf where some d <= 0
+    (the ratio's variance is infinite). 0 on the diagonal, >= 0 everywhere (E[r] = 1)."""
+    v = zeta.std**2
+    v_i, v_k = v[:, None, :], v[None, :, :]
+    d = 2.0 * v_k - v_i
+    safe = jnp.where(d > 0, d, 1.0)
+    per_dim = (jnp.log(v_k) - 0.5 * jnp.log(v_i) - 0.5 * jnp.log(safe)
+               + (zeta.mean[:, None, :] - zeta.mean[None, :, :]) ** 2 / safe)
+    return jnp.where(jnp.all(d > 0, axis=-1), jnp.sum(per_dim, axis=-1), jnp.inf)
+
+
+PAIRWISE_MAX_RATIO_MOMENT = 2.0
+"""``pairwise_baseline`` estimates b_ii only from samples k whose importance ratio has
+``E[r_ik^2] <=`` this (relative variance at most 1)."""
+
+
+def pairwise_baseline(zeta: Zeta, log_p: jax.Array, G: jax.Array,
+                      max_ratio_moment: float = PAIRWISE_MAX_RATIO_MOMENT) -> jax.Array:
+    """``b_ij`` (P, P) from log_p (P, P) [i, k] = log p_i(s_k) and G (P,). For a row i with
+    partners, samples k != i whose importance ratio ``r_ik = p_i(s_k) / p_k(s_k)`` has
+    ``E[r_ik^2] <= max_ratio_moment`` (``log_ratio_second_moments``; a choice made from the
+    step's distributions alone): particle i's own cost-to-go ``G_i`` for j != i, and for j = i
+
+        b_ii = sum_{partners k} a_ik r_ik G_k / sum_{partners k} a_ik,   a_ik = 1 / E[r_ik^2],
+
+    where each r_ik G_k is an unbiased estimate of E_{p_i}[G] (s_k ~ p_k). Rows without
+    partners get no baseline (b = 0). Either way every b_ij is independent of the sample s_j
+    it multiplies and has the same expectation for every j (E_{p_i}[G], or 0), so the
+    baseline term's expectation ``sum_j E[b_ij] E[c_ij d log p_i(s_j)]`` is that constant
+    times ``d/dzeta_i int p_i = 0``."""
+    off_diagonal = ~jnp.eye(G.shape[0], dtype=bool)
+    log_moment = log_ratio_second_moments(zeta)
+    partner = off_diagonal & (log_moment <= jnp.log(max_ratio_moment))
+    log_a = jnp.where(partner, -log_moment, -jnp.inf)
+    has_partner = jnp.any(partner, axis=1)
+    normaliser = jnp.where(has_partner, jax.scipy.special.logsumexp(log_a, axis=1), 0.0)
+    log_r = log_p - jnp.diag(log_p)[None, :]
+    b_diag = jnp.exp(log_a + jnp.where(partner, log_r, 0.0) - normaliser[:, None]) @ G
+    b = jnp.where(off_diagonal, G[:, None], b_diag[:, None])
+    return jnp.where(has_partner[:, None], b, 0.0)
+
+
+BASELINES = ("leave_one_out", "pairwise", "none")
+
+
+def lr_statistics(zeta: Zeta, s: jax.Array, G: jax.Array, baseline: str = "leave_one_out"
+                  ) -> tuple[ScoreStatistics, jax.Array]:
+    """Statistics for ``W = diag(G - b)`` (b: the leave-one-out mean, which is also LR's
+    pairwise baseline, or 0 for "none"); returns them and the effective sample size P."""
+    weight = G if baseline == "none" else G - leave_one_out_baseline(G)
     r = s - zeta.mean
     return ScoreStatistics(zeta.mean, weight[:, None] * r**2, weight[:, None] * r, weight), jnp.asarray(
         G.shape[0], G.dtype)
 
 
-def biw_statistics(zeta: Zeta, s: jax.Array, G: jax.Array, baseline: bool = True) -> tuple[ScoreStatistics, jax.Array]:
-    """Statistics for the batch-importance-weighted W (b = 0 without ``baseline``); returns
-    them and the mean over i of the effective sample size ``(sum_j c_ij)^2 / sum_j c_ij^2`` of
-    particle i's weights."""
+def biw_statistics(zeta: Zeta, s: jax.Array, G: jax.Array, baseline: str = "leave_one_out"
+                   ) -> tuple[ScoreStatistics, jax.Array]:
+    """Statistics for the batch-importance-weighted W with ``baseline`` (module docstring);
+    returns them and the mean over i of the effective sample size
+    ``(sum_j c_ij)^2 / sum_j c_ij^2`` of particle i's weights."""
     log_p = log_density_matrix(zeta, s)
     log_c = log_p - jax.scipy.special.logsumexp(log_p, axis=0, keepdims=True)  # normalise over i
     c = jnp.exp(log_c)
     W = c * G[None, :]
-    if baseline:
+    if baseline == "leave_one_out":
         # b_i = sum_{j != i} c_ij G_j / sum_{j != i} c_ij as a softmax of log c_ij over j != i:
         # finite even when every c_ij (j != i) underflows (particles far apart).
         off_diagonal = jnp.where(jnp.eye(c.shape[0], dtype=bool), -jnp.inf, log_c)
         W = W - c * (jax.nn.softmax(off_diagonal, axis=1) @ G)[:, None]
+    elif baseline == "pairwise":
+        W = W - c * pairwise_baseline(zeta, log_p, G)
     # A_i = sum_j W_ij (s_j - m_i)^2 and B_i = sum_j W_ij (s_j - m_i), expanded (centred) into
     # products with W: (P, P) x (P, S).
     s_c, m_c = centred(zeta, s)
@@ -113,17 +175,20 @@ class LikelihoodRatio:
     """LR (``weighting="lr"``) or BIW-LR (``weighting="biw_lr"``) estimator;
     ``__call__(problem, theta, key, P) -> Estimate``; aux adds ``ess`` (T,).
 
-    ``baseline=False`` drops the baseline: BIW-LR is then unbiased (the samples are a
-    stratified draw from the mixture), while the paper's data-dependent baseline adds a bias
-    that shrinks with P (measured in tests/test_estimators.py).
+    ``baseline``: one of ``BASELINES`` (module docstring). Without one ("none") BIW-LR is
+    unbiased (the samples are a stratified draw from the mixture); the paper's
+    "leave_one_out" adds a bias that shrinks with P, "pairwise" removes most of it (both
+    measured in tests/test_estimators.py).
     """
 
     weighting: str = "lr"
-    baseline: bool = True
+    baseline: str = "leave_one_out"
 
     def __post_init__(self):
         if self.weighting not in STATISTICS:
             raise ValueError(f"unknown weighting {self.weighting!r}; valid: {sorted(STATISTICS)}")
+        if self.baseline not in BASELINES:
+            raise ValueError(f"unknown baseline {self.baseline!r}; valid: {list(BASELINES)}")
 
     def step_statistics(self, zetas: Zeta, states: jax.Array, G: jax.Array):
         """Per-step statistics over the whole trajectory, one step at a time (lax.map keeps

@@ -44,11 +44,17 @@ def trace_of_variance(per_particle) -> jax.Array:
 @dataclasses.dataclass(frozen=True)
 class TotalPropagation:
     """TP estimator; ``weighting`` picks its likelihood-ratio part ("biw_lr" as in the paper,
-    or "lr"); ``fixed_k`` forces k_LR (None: inverse-variance weighting).
+    or "lr") and ``baseline`` its baseline (``likelihood_ratio.BASELINES``: the paper's
+    "leave_one_out", "pairwise" or "none"); ``fixed_k`` forces k_LR (None: inverse-variance
+    weighting).
     ``__call__(problem, theta, key, P) -> Estimate``; aux adds ``k_lr`` (T,) and ``ess`` (T,)."""
 
     weighting: str = "biw_lr"
+    baseline: str = "leave_one_out"
     fixed_k: float | None = None
+
+    def __post_init__(self):
+        LikelihoodRatio(self.weighting, self.baseline)  # checks both names
 
     def __call__(self, problem: Problem, theta, key: jax.Array, num_particles: int) -> Estimate:
         s0, eps = draw_noise(problem, key, num_particles, theta_dtype(theta))
@@ -62,7 +68,7 @@ class TotalPropagation:
 
         _, (states, zetas) = jax.lax.scan(forward, s0, eps)
         traj = Trajectory(jnp.concatenate([s0[None], states]), zetas, jax.vmap(jax.vmap(problem.cost))(states))
-        stats, ess = LikelihoodRatio(self.weighting).step_statistics(zetas, states, traj.cost_to_go)
+        stats, ess = LikelihoodRatio(self.weighting, self.baseline).step_statistics(zetas, states, traj.cost_to_go)
         cost_grad = jax.vmap(jax.grad(problem.cost))
 
         def backward(carry, inputs):
