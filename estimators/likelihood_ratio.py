@@ -33,7 +33,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from estimators.base import Estimate, Problem, Zeta, draw_noise, particle_estimate, particle_gradients, rollout, theta_dtype
+from estimators.base import (Estimate, Problem, Zeta, draw_noise, particle_estimate, particle_gradients, rollout,
+                             theta_dtype)
 
 
 class ScoreStatistics(NamedTuple):
