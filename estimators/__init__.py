@@ -1,7 +1,9 @@
 """Gradient estimators and their registry: ``estimators.make(name, **overrides)``.
 
 Every estimator is called as ``est(problem, theta, key, num_particles) -> Estimate`` (see
-``estimators.base``); ``num_particles`` fixes shapes, so jit with it static.
+``estimators.base``); ``num_particles`` fixes shapes, so jit with it static. Named variants
+(``biw_lr_pairwise``, ``biw_lr_no_baseline``, ``tp_pairwise``) give the experiments' CLIs
+the BIW-LR baselines of ``estimators.likelihood_ratio`` by name.
 """
 
 from __future__ import annotations
@@ -21,7 +23,10 @@ REGISTRY: dict[str, Callable[..., object]] = {
     "gr_fs": lambda: FixedNoise(Reparameterisation(gaussian_resampling=True)),
     "lr": lambda **kw: LikelihoodRatio("lr", **kw),
     "biw_lr": lambda **kw: LikelihoodRatio("biw_lr", **kw),
+    "biw_lr_pairwise": lambda: LikelihoodRatio("biw_lr", baseline="pairwise"),
+    "biw_lr_no_baseline": lambda: LikelihoodRatio("biw_lr", baseline="none"),
     "tp": lambda **kw: TotalPropagation(**kw),
+    "tp_pairwise": lambda: TotalPropagation(baseline="pairwise"),
     "pilco": lambda: Pilco(),
 }
 
