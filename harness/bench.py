@@ -46,16 +46,27 @@ class Args:
     """Time one gradient estimate of each estimator (compile time, median, peak memory)."""
 
     estimators: str = "rp,rp_fs,gr,gr_fs,lr,biw_lr,tp"
+    """Comma-separated estimators to time."""
     particles: str = "100,300,1000"
+    """Comma-separated particle counts."""
     repeats: int = 5
+    """Timed calls per estimator and particle count (median reported)."""
     trials: int = 15
+    """Random episodes in the GP's training data."""
     gp_steps: int = 30
+    """L-BFGS steps of the GP fit."""
     seed: int = 0
+    """Seed of the data and keys."""
     learning_methods: str = DEFAULT_METHODS
+    """Methods of the projected learning experiment (empty: skip that section)."""
     float32_learning_methods: str = "tp"
+    """Methods timed again with float32 rollouts."""
     pseudo_input_learning_methods: str = "tp"
+    """Methods timed again with PILCO's pseudo-input RBF policy."""
     fitc_learning_methods: str = "tp,pilco"
+    """Methods timed again with the FITC sparse GP past 300 points."""
     out: str = "reports"
+    """Folder for bench.md and the CSVs."""
 
 
 def matmul_rate(n: int = 2048, repeats: int = 5) -> float:

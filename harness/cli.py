@@ -1,24 +1,59 @@
-"""A typed dataclass that is both an experiment's configuration and its command line."""
+"""A typed dataclass that is both an experiment's configuration and its command line.
+
+Each field is a flag (``delta_theta`` is ``--delta-theta``; a bool is ``--flag/--no-flag``) and
+the string literal right below a field is its help text, as in::
+
+    particles: int = 300
+    \"\"\"Particles per gradient estimate.\"\"\"
+"""
 
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
+import inspect
+import textwrap
 import typing
 
 
+def field_docs(args_class) -> dict[str, str]:
+    """Each field's docstring (the string literal right after its annotated assignment),
+    from the class and its dataclass bases (a subclass's text wins), whitespace collapsed."""
+    docs = {}
+    for cls in reversed(args_class.__mro__):
+        if not dataclasses.is_dataclass(cls):
+            continue
+        body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+        for node, after in zip(body, body[1:]):
+            if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
+                    and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
+                    and isinstance(after.value.value, str)):
+                docs[node.target.id] = " ".join(after.value.value.split())
+    return docs
+
+
+def undocumented_fields(args_class) -> list[str]:
+    """The fields of ``args_class`` without a docstring (every flag must say what it means)."""
+    docs = field_docs(args_class)
+    return [field.name for field in dataclasses.fields(args_class) if field.name not in docs]
+
+
 def parse(args_class, argv=None):
-    """Build ``args_class`` (a dataclass of str/int/float/bool fields with defaults) from the
-    command line: field ``delta_theta`` is ``--delta-theta``; a bool is a ``--flag/--no-flag``."""
+    """Build ``args_class`` (a dataclass of str/int/float/bool fields with defaults and
+    docstrings) from the command line; ``--help`` lists every flag with its meaning and default."""
     hints = typing.get_type_hints(args_class)
+    docs = field_docs(args_class)
     parser = argparse.ArgumentParser(description=(args_class.__doc__ or "").strip().splitlines()[0])
     for field in dataclasses.fields(args_class):
         flag = "--" + field.name.replace("_", "-")
         kind = hints[field.name]
+        text = f"{docs.get(field.name, '')} (default: {field.default!r})".strip()
         if kind is bool:
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=field.default)
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=field.default,
+                                help=text.replace("%", "%%"))
         else:
-            parser.add_argument(flag, type=kind, default=field.default, help=f"(default: {field.default})")
+            parser.add_argument(flag, type=kind, default=field.default, help=text.replace("%", "%%"))
     return args_class(**vars(parser.parse_args(argv)))
 
 

@@ -44,13 +44,21 @@ class Args(scenario_lib.ExperimentArgs):
     """Learned-model against true-dynamics gradients: variance, cosine and relative error."""
 
     models: str = "gp,jax"
+    """Comma-separated models to compare (gp, jax, mjx)."""
     estimators: str = "rp,lr,biw_lr,tp"
+    """Comma-separated estimators."""
     particles: str = "10,30,100,300"
+    """Comma-separated particle counts."""
     repeats: int = 20
+    """Independent estimates per (model, estimator, particles) cell."""
     reference_model: str = "jax"
+    """True dynamics of the reference gradient (jax or mjx)."""
     reference_estimator: str = "lr"
+    """Estimator of the reference gradient."""
     reference_particles: int = 1000
+    """Particles per reference estimate."""
     reference_repeats: int = 30
+    """Reference estimates averaged into the reference gradient."""
 
     def __post_init__(self):
         super().__post_init__()

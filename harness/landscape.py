@@ -51,16 +51,27 @@ class Args(scenario_lib.ExperimentArgs):
     """The curse-of-chaos value landscape along a random direction in policy space."""
 
     model: str = "gp"
+    """Dynamics: gp (the scenario's GP), jax or mjx."""
     estimators: str = "rp_fs,lr,tp"
+    """Comma-separated estimators whose projected gradients are plotted."""
     particles: int = 1000
+    """Particles at every delta (one fixed key)."""
     delta_max: float = 1.5
+    """The direction is scanned over [-delta_max, delta_max]."""
     points: int = 31
+    """Number of deltas in the scan."""
     fd_step: float = 0.1
+    """Finite-difference half-step h of the fixed-seed slope."""
     slice_dims: str = ""
+    """Two comma-separated first-state dimensions of the value slices (empty: the task's)."""
     slice_deltas: str = "0,1.5"
+    """Comma-separated deltas at which the value slices are computed."""
     slice_particles: int = 4
+    """Fixed-seed particles averaged at each slice grid point."""
     grid: int = 41
+    """Slice grid points per axis."""
     box_stds: float = 4.0
+    """Half-width of the slice box in standard deviations of p(s_1)."""
 
     def __post_init__(self):
         super().__post_init__()

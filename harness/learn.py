@@ -88,24 +88,43 @@ class Args:
     """Episodic learning: success rates and learning curves per method."""
 
     task: str = "cartpole"
+    """Task name (cartpole or unicycle)."""
     cost: str = ""
+    """Cost type (cartpole: angle or tip; empty: the task preset's)."""
     noise_k: float = 1.0
+    """Observation-noise multiplier k of the paper's tables."""
     task_options: str = ""
+    """Task options over its preset's, NAME=VALUE,... (e.g. angle_cost_scale=1)."""
     methods: str = DEFAULT_METHODS
+    """Comma-separated methods (learn.METHODS)."""
     repeats: int = 10
+    """Learning runs per method (repeat r uses seed + r)."""
     preset: str = "quick"
+    """Settings preset: quick, quick_p50 or paper (learn.PRESETS)."""
     seed: int = 0
+    """Seed of repeat 0."""
     out: str = "reports"
+    """Folder for the CSV, report and figure (and .cache/learn/ checkpoints)."""
     x64: bool = True
+    """Compute in float64 (--no-x64: float32)."""
     rollout_float32: bool = False
+    """Particle methods roll out in float32 on a float64-fitted GP."""
     learned_trials: int = -1
+    """Learned trials per run (-1: the preset's; 0: the task preset's)."""
     optimiser_steps: int = -1
+    """Steps of the paper's optimiser per trial (-1: the preset's)."""
     particles: int = -1
+    """Particles per gradient estimate (-1: the preset's)."""
     eval_runs: int = -1
+    """Real-system evaluation runs after each trial (-1: the preset's)."""
     pilco_steps: int = -1
+    """PILCO's L-BFGS steps per trial (-1: the preset's)."""
     gp_steps: int = -1
+    """L-BFGS steps of each GP fit (-1: the preset's)."""
     gp_inducing: int = 0
+    """FITC sparse GP with this many inducing inputs once the data exceed it (0: full GP)."""
     batch: int = 10
+    """Repeats of a method vmapped together in one program."""
 
     def __post_init__(self):
         if self.preset not in PRESETS:

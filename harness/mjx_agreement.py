@@ -41,11 +41,17 @@ class Args:
     """MuJoCo (MJX) model against the task's reference equations over short horizons."""
 
     task: str = "unicycle"
+    """Task with a MuJoCo model (cartpole or unicycle)."""
     states: int = 64
+    """Initial states drawn from the task's initial distribution."""
     horizon: int = 5
+    """Control steps compared."""
     control_fractions: str = "0,0.1,0.3,1"
+    """Comma-separated fractions of the control range for the random controls."""
     seed: int = 0
+    """Seed of the states and controls."""
     out: str = "reports"
+    """Folder for the CSV and markdown."""
 
     def __post_init__(self):
         task = tasks.make(self.task)  # fails with the list of tasks

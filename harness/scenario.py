@@ -42,12 +42,19 @@ class ScenarioArgs:
     """How the scenario is built (recorded in every report that uses it)."""
 
     task: str = "cartpole"
+    """Task name."""
     seed: int = 0
+    """Seed of the scenario's trials."""
     learned_trials: int = 2
+    """Learned trials after the random one(s)."""
     estimator: str = "tp"
+    """Estimator (or pilco) that optimises the policy in each trial."""
     particles: int = 100
+    """Particles per gradient estimate."""
     optimiser_steps: int = 200
+    """Optimiser steps per trial (L-BFGS steps for pilco)."""
     gp_steps: int = 100
+    """L-BFGS steps of each GP fit."""
 
     def describe(self) -> str:
         how = (f"PILCO ({self.optimiser_steps} L-BFGS steps)" if self.estimator == "pilco" else
@@ -111,13 +118,21 @@ class ExperimentArgs:
     """The options every gradient experiment shares (their CLIs extend this dataclass)."""
 
     task: str = "cartpole"
+    """Task name (cartpole or unicycle)."""
     seed: int = 0
+    """Seed of the scenario, the random direction and the estimates' keys."""
     out: str = "reports"
+    """Folder for the CSV, markdown and figure (and .cache/ for scenarios)."""
     x64: bool = True
+    """Compute in float64 (--no-x64: float32)."""
     scenario_trials: int = 2
+    """Learned trials that build the scenario's theta0 and GP."""
     scenario_steps: int = 200
+    """Optimiser steps per scenario trial (L-BFGS steps for pilco)."""
     scenario_particles: int = 100
+    """Particles per gradient estimate while building the scenario."""
     scenario_estimator: str = "tp"
+    """Estimator (or pilco) that optimises the policy while building the scenario."""
 
     def __post_init__(self):
         tasks.make(self.task)  # fails with the list of tasks

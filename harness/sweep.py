@@ -36,14 +36,23 @@ class Args:
     """The paper's learning grid, every cell with every method."""
 
     repeats: int = 10
+    """Learning runs per method in every cell."""
     preset: str = "quick"
+    """harness.learn settings preset of every cell."""
     methods: str = DEFAULT_METHODS
+    """Comma-separated methods (the unicycle cell keeps the paper's columns)."""
     cells: str = "all"
+    """all, or comma-separated indices into sweep.CELLS."""
     workers: int = 0
+    """Cells run at once by the local engine (0: one per core)."""
     engine: str = "local"
+    """local (process pool) or ray."""
     seed: int = 0
+    """Seed of repeat 0 in every cell."""
     out: str = "reports"
+    """Folder of every cell's CSV and report."""
     learn_args: str = ""
+    """Extra harness.learn flags for every cell, as one string."""
 
     def __post_init__(self):
         if self.engine not in ENGINES:

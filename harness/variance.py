@@ -38,11 +38,17 @@ class Args(scenario_lib.ExperimentArgs):
     """Gradient variance of each estimator against the particle count."""
 
     model: str = "gp"
+    """Dynamics the estimators roll out: gp (the scenario's GP), jax or mjx (the true dynamics)."""
     estimators: str = "rp,lr,biw_lr,tp"
+    """Comma-separated estimators (estimators.REGISTRY names, e.g. biw_lr_pairwise)."""
     particles: str = "10,30,100,300"
+    """Comma-separated particle counts."""
     repeats: int = 30
+    """Independent estimates per cell (the variance is over them)."""
     delta_theta: str = "0,1.5"
+    """Comma-separated distances along the random direction from theta0."""
     paper: bool = False
+    """The paper's sizes: particles 10,30,100,300,1000 and at least 100 repeats."""
 
     def __post_init__(self):
         super().__post_init__()
