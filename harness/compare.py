@@ -93,9 +93,10 @@ def alignment(grads: np.ndarray, reference: np.ndarray) -> dict:
     }
 
 
-def reference_gradient(args: Args, theta0, key: jax.Array) -> tuple[np.ndarray, float]:
-    """The reference gradient (n,) and its relative standard error, cached under ``out``."""
-    path = os.path.join(args.out, ".cache", f"reference_{args.task}_{args.scenario_name}_{args.reference_name}.npz")
+def reference_gradient(args: Args, theta0, content: str, key: jax.Array) -> tuple[np.ndarray, float]:
+    """The reference gradient (n,) and its relative standard error, cached under ``out`` by the
+    scenario's content hash."""
+    path = os.path.join(args.out, ".cache", f"reference_{args.task}_{content}_{args.reference_name}.npz")
     if not os.path.exists(path):
         print(f"reference: {args.reference_repeats} x {args.reference_estimator} with {args.reference_particles} "
               f"particles on the {args.reference_model} dynamics", file=sys.stderr, flush=True)
@@ -116,25 +117,26 @@ def run(args: Args) -> tuple[pd.DataFrame, float]:
     table = ResultTable(os.path.join(args.out, f"compare_{args.task}.csv"), KEY_COLUMNS)
     seed_key = jax.random.key(args.seed)
     where = {model: scenario_lib.setting(args, model) for model in str_list(args.models)}
-    theta0 = next(iter(where.values())).theta0
-    reference, reference_rse = reference_gradient(args, theta0, jax.random.fold_in(seed_key, 4))
+    theta0, content = next(iter(where.values())).theta0, next(iter(where.values())).content
+    reference, reference_rse = reference_gradient(args, theta0, content, jax.random.fold_in(seed_key, 4))
     cells = [(m, e, p) for m in str_list(args.models) for e in str_list(args.estimators)
              for p in int_list(args.particles)]
     for index, (model, name, num_particles) in enumerate(cells):
         row_key = dict(task=args.task, model=model, estimator=name, particles=num_particles, repeats=args.repeats,
-                       seed=args.seed, scenario=args.scenario_name, reference=args.reference_name)
+                       seed=args.seed, scenario=content, reference=args.reference_name)
         if table.has(row_key):
             continue
         rep = repeated_estimates(estimators.make(name), where[model].problem, theta0, num_particles, args.repeats,
                                  jax.random.fold_in(seed_key, 2))
         stats = {**cell_statistics(rep), **alignment(rep.grads, reference)}
-        table.append({**row_key, **stats})
+        table.append({**row_key, **stats, "scenario_settings": args.scenario_name})
         jax.clear_caches()  # no later cell reuses its programs (README: memory mappings)
         print(f"[{index + 1}/{len(cells)}] {model:3s} {name:7s} P={num_particles:5d}: variance {stats['variance']:.3e}, "
               f"cosine {stats['cosine']:.3f} +- {stats['cosine_ci']:.3f}, rel. error {stats['rel_error']:.3g}",
               file=sys.stderr, flush=True)
+    print(f"compare: scenario {content}: {table.summary()}", file=sys.stderr, flush=True)
     rows = table.read()
-    keep = (rows.seed == args.seed) & (rows.repeats == args.repeats) & (rows.scenario == args.scenario_name) & (
+    keep = (rows.seed == args.seed) & (rows.repeats == args.repeats) & (rows.scenario == content) & (
         rows.reference == args.reference_name)
     return rows[keep], reference_rse
 
@@ -198,7 +200,7 @@ def write_report(args: Args, rows: pd.DataFrame, reference_rse: float) -> None:
         f"--reference-repeats {args.reference_repeats} --seed {args.seed} {args.scenario_flags()}`",
         "",
         *scenario_lib.model_labels(args.task, str_list(args.models) + [args.reference_model]),
-        f"- Scenario: {args.scenario.describe()}; every model is evaluated at its theta0.",
+        args.scenario_line(rows, "; every model is evaluated at its theta0"),
         f"- Reference g*: the mean of {args.reference_repeats} {args.reference_estimator} estimates with "
         f"{args.reference_particles} particles on the {args.reference_model} dynamics; its relative standard error "
         f"(|standard error| / |g*|) is {reference_rse:.3f}, which bounds how close to 1 a cosine can be measured.",

@@ -175,12 +175,12 @@ def run(args: Args) -> tuple[pd.DataFrame, dict]:
     jitted["returns"] = jax.jit(particle_returns, static_argnums=3)
     for index, delta in enumerate(args.deltas):
         row_key = dict(task=args.task, model=args.model, particles=args.particles, delta_theta=float(delta),
-                       seed=args.seed, scenario=args.scenario_name, fd_step=args.fd_step, estimators=args.estimators)
+                       seed=args.seed, scenario=where.content, fd_step=args.fd_step, estimators=args.estimators)
         if table.has(row_key):
             continue
         start = time.perf_counter()
         row = measure_delta(args, where, float(delta), key, jitted)
-        table.append({**row_key, **row})
+        table.append({**row_key, **row, "scenario_settings": args.scenario_name})
         print(f"[{index + 1}/{args.points}] delta={delta:.3f}: J {row['value']:.3f}, FD slope {row['fd_slope']:.3g}, "
               + ", ".join(f"{n} {row[f'{n}_grad']:.3g}" for n in str_list(args.estimators))
               + f", FTLE {row['ftle_mean']:.3f}  ({time.perf_counter() - start:.1f} s)", file=sys.stderr, flush=True)
@@ -188,7 +188,7 @@ def run(args: Args) -> tuple[pd.DataFrame, dict]:
     slices = {}
     stored = dict(np.load(slices_path)) if os.path.exists(slices_path) else {}
     for delta in float_list(args.slice_deltas):
-        name = f"{args.scenario_name}_seed{args.seed}_P{args.particles}_n{args.slice_particles}_grid{args.grid}_" \
+        name = f"{where.content}_seed{args.seed}_P{args.particles}_n{args.slice_particles}_grid{args.grid}_" \
                f"box{args.box_stds:g}_{','.join(args.slice_names)}_delta{delta:g}"
         if name + "_values" not in stored:
             print(f"value slice at delta={delta:g} ({args.grid}x{args.grid} starts)", file=sys.stderr, flush=True)
@@ -196,8 +196,9 @@ def run(args: Args) -> tuple[pd.DataFrame, dict]:
                 stored[f"{name}_{part}"] = array
             np.savez(slices_path, **stored)
         slices[delta] = {part: stored[f"{name}_{part}"] for part in ("axis_i", "axis_j", "values")}
+    print(f"landscape: scenario {where.content}: {table.summary()}", file=sys.stderr, flush=True)
     rows = table.read()
-    rows = rows[(rows.seed == args.seed) & (rows.particles == args.particles) & (rows.scenario == args.scenario_name)
+    rows = rows[(rows.seed == args.seed) & (rows.particles == args.particles) & (rows.scenario == where.content)
                 & (rows.fd_step == args.fd_step) & (rows.estimators == args.estimators)]
     return rows.sort_values("delta_theta"), slices
 
@@ -304,7 +305,7 @@ def write_report(args: Args, rows: pd.DataFrame, slices: dict) -> None:
         f"--grid {args.grid} --box-stds {args.box_stds:g} --seed {args.seed} {args.scenario_flags()}`",
         "",
         *scenario_lib.model_labels(args.task, [args.model]),
-        f"- Scenario: {args.scenario.describe()}.",
+        args.scenario_line(rows),
         f"- theta = theta0 + delta d, d a fixed random unit direction; one fixed key draws the {args.particles} "
         "particles at every delta; intervals are 95 % (1.96 standard errors over particles). FTLE: finite-time "
         "Lyapunov exponent of the closed-loop particle map with the noise fixed, per control step "

@@ -34,7 +34,8 @@ def load_pickle(path: str) -> Any:
 
 
 class ResultTable:
-    """The CSV at ``path``, keyed by ``key_columns``."""
+    """The CSV at ``path``, keyed by ``key_columns``. Counts the rows this run found already
+    written (``has``) and the ones it wrote (``append``): ``summary()`` says so."""
 
     def __init__(self, path: str, key_columns: list[str]):
         self.path = path
@@ -43,6 +44,11 @@ class ResultTable:
         existing = self.read()
         self._columns = list(existing.columns) if os.path.exists(path) else None
         self._done = {self._key(row) for row in existing.to_dict("records")}
+        self.reused = self.computed = 0
+
+    def summary(self) -> str:
+        """"computed N cells, reused M from PATH"."""
+        return f"computed {self.computed} cells, reused {self.reused} from {self.path}"
 
     def _key(self, row: dict) -> tuple[str, ...]:
         missing = [c for c in self.key_columns if c not in row]
@@ -57,17 +63,24 @@ class ResultTable:
         return pd.DataFrame(columns=self.key_columns)
 
     def has(self, key: dict) -> bool:
-        """Whether a row with these key values is already written."""
-        return self._key(key) in self._done
+        """Whether a row with these key values is already written (counted as reused)."""
+        found = self._key(key) in self._done
+        self.reused += found
+        return found
 
     def append(self, row: dict) -> None:
         """Write one row now (the header with the first row; later rows in the header's column
-        order, whatever the order of their keys)."""
+        order, whatever the order of their keys). A row with columns the file lacks (written by
+        an older version) adds them, empty in the older rows; a row lacking some is an error."""
         if self._columns is None:
             self._columns = list(row)
-        elif set(row) != set(self._columns):
-            raise ValueError(f"row columns {sorted(row)} differ from {self.path}'s {sorted(self._columns)}; "
-                             "write these results to another --out folder")
+        elif set(self._columns) - set(row):
+            raise ValueError(f"row columns {sorted(row)} lack {sorted(set(self._columns) - set(row))} of "
+                             f"{self.path}'s; write these results to another --out folder")
+        elif set(row) - set(self._columns):
+            self._columns += [column for column in row if column not in self._columns]
+            self.read().reindex(columns=self._columns).to_csv(self.path, index=False)
         pd.DataFrame([row])[self._columns].to_csv(self.path, mode="a", header=not os.path.exists(self.path),
                                                   index=False)
         self._done.add(self._key(row))
+        self.computed += 1

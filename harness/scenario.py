@@ -93,11 +93,36 @@ def build(args: ScenarioArgs) -> Scenario:
     return Scenario(data, posterior, theta, np.asarray(returns))
 
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCENARIO_CODE = ("numerics", "tasks", "models", "estimators", "harness/episodic.py", "harness/optim.py",
+                 "harness/scenario.py")
+"""The code a scenario's theta0 and GP depend on (packages and modules, relative to the root)."""
+
+
+def code_digest() -> str:
+    """A hash of the source files of ``SCENARIO_CODE`` (names and bytes, in sorted order)."""
+    files = []
+    for entry in SCENARIO_CODE:
+        path = os.path.join(ROOT, entry)
+        if os.path.isdir(path):
+            files += [os.path.join(path, name) for name in os.listdir(path) if name.endswith((".py", ".xml"))]
+        else:
+            files.append(path)
+    digest = hashlib.sha256()
+    for path in sorted(files):
+        digest.update(os.path.relpath(path, ROOT).encode())
+        with open(path, "rb") as f:
+            digest.update(f.read())
+    return digest.hexdigest()[:12]
+
+
 def cache_path(args: ScenarioArgs, cache_dir: str) -> str:
-    """The cache file of ``args``: a hash of its settings, the precision and every option of the
-    task (``tasks.describe``: a change of a task's default, e.g. its cost, makes a new one)."""
+    """The cache file of ``args``: a hash of its settings, the precision, every option of the
+    task (``tasks.describe``: a change of a task's default, e.g. its cost, makes a new one) and
+    the code that builds it (``code_digest``), so that a stale scenario is never reused."""
     settings = json.dumps({**dataclasses.asdict(args), "x64": jax.config.jax_enable_x64,
-                           "task_options": tasks.describe(tasks.make(args.task))}, sort_keys=True)
+                           "task_options": tasks.describe(tasks.make(args.task)), "code": code_digest()},
+                          sort_keys=True)
     digest = hashlib.sha256(settings.encode()).hexdigest()[:12]
     return os.path.join(cache_dir, f"scenario_{args.task}_{digest}.pkl")
 
@@ -149,6 +174,12 @@ class ExperimentArgs:
         """The scenario's cache name (a hash of its settings), recorded in every result row."""
         return os.path.basename(cache_path(self.scenario, ""))
 
+    def scenario_line(self, rows, note: str = "") -> str:
+        """The report's scenario line: how it was built and the content hash of the rows shown."""
+        hashes = ", ".join(sorted(map(str, rows.scenario.unique())))
+        return (f"- Scenario: {self.scenario.describe()}{note}. Content hash {hashes} (theta0, the direction and "
+                "the GP posterior, at float32 precision): every row shown was computed on it.")
+
     def scenario_flags(self) -> str:
         return (f"--scenario-trials {self.scenario_trials} --scenario-steps {self.scenario_steps} "
                 f"--scenario-particles {self.scenario_particles} --scenario-estimator {self.scenario_estimator}")
@@ -156,12 +187,14 @@ class ExperimentArgs:
 
 class Setting(NamedTuple):
     """Where an experiment measures: ``problem`` under the chosen model, ``theta0`` and the unit
-    ``direction`` d (both pytrees like theta), and the scenario they come from."""
+    ``direction`` d (both pytrees like theta), the scenario they come from, and ``content``,
+    the ``content_hash`` of what is computed on (every result row is keyed by it)."""
 
     problem: Problem
     theta0: Any
     direction: Any
     scenario: Scenario
+    content: str
 
     def theta(self, delta: float):
         """``theta0 + delta * d``."""
@@ -202,9 +235,23 @@ def check_model(model: str) -> None:
         raise ValueError(f"unknown model {model!r}; valid models: {list(MODELS)}")
 
 
+def content_hash(theta0, direction, posterior: gp.GPPosterior) -> str:
+    """A hash of theta0, the direction and the GP posterior's valid training inputs, targets'
+    weights alpha and hyperparameters, each rounded to float32 (about 7 significant digits):
+    equal for the same scenario computed twice, different when any of them changes."""
+    mask = np.asarray(posterior.mask)
+    arrays = [*jax.tree.leaves(theta0), *jax.tree.leaves(direction), np.asarray(posterior.inputs)[mask],
+              np.asarray(posterior.alpha)[:, mask], posterior.log_hyp]
+    digest = hashlib.sha256()
+    for array in arrays:
+        digest.update(np.ascontiguousarray(np.asarray(array, np.float32)).tobytes())
+    return digest.hexdigest()[:12]
+
+
 def setting(args: ExperimentArgs, model: str) -> Setting:
     """The Setting of ``args`` under ``model``, building or loading the cached scenario under
     ``args.out``."""
     scn = load_or_build(args.scenario, os.path.join(args.out, ".cache"))
     direction = unit_direction(scn.theta, jax.random.fold_in(jax.random.key(args.seed), 1))
-    return Setting(model_problem(args.task, model, scn), scn.theta, direction, scn)
+    return Setting(model_problem(args.task, model, scn), scn.theta, direction, scn,
+                   content_hash(scn.theta, direction, scn.posterior))

@@ -140,18 +140,19 @@ def run(args: Args) -> pd.DataFrame:
              for p in args.particle_counts]
     for index, (delta, name, num_particles) in enumerate(cells):
         row_key = dict(task=args.task, model=args.model, estimator=name, particles=num_particles,
-                       delta_theta=delta, repeats=args.num_repeats, seed=args.seed, scenario=args.scenario_name)
+                       delta_theta=delta, repeats=args.num_repeats, seed=args.seed, scenario=where.content)
         if table.has(row_key):
             continue
         rep = repeated_estimates(estimators.make(name), where.problem, where.theta(delta), num_particles,
                                  args.num_repeats, key)
         stats = cell_statistics(rep)
-        table.append({**row_key, **stats})
+        table.append({**row_key, **stats, "scenario_settings": args.scenario_name})
         print(f"[{index + 1}/{len(cells)}] {name:7s} P={num_particles:5d} delta={delta:g}: "
               f"variance {stats['variance']:.3e}  ({stats['seconds_per_estimate']:.2f} s/estimate, "
               f"compile {stats['compile_seconds']:.1f} s)", file=sys.stderr, flush=True)
+    print(f"variance: scenario {where.content}: {table.summary()}", file=sys.stderr, flush=True)
     rows = table.read()
-    return rows[(rows.seed == args.seed) & (rows.repeats == args.num_repeats) & (rows.scenario == args.scenario_name)]
+    return rows[(rows.seed == args.seed) & (rows.repeats == args.num_repeats) & (rows.scenario == where.content)]
 
 
 def findings(table: pd.DataFrame) -> list[str]:
@@ -220,7 +221,7 @@ def write_report(args: Args, table: pd.DataFrame) -> None:
         f"{args.scenario_flags()}`",
         "",
         *scenario_lib.model_labels(args.task, [args.model]),
-        f"- Scenario: {args.scenario.describe()}.",
+        args.scenario_line(table),
         f"- Variance: trace of the covariance of {args.num_repeats} independent gradient estimates "
         f"(float{'64' if args.x64 else '32'}); theta = theta0 + delta d, d a fixed random unit direction.",
         "",

@@ -34,8 +34,27 @@ def test_variance_runs_end_to_end_and_resumes(tmp_path, capsys):
     assert "Scenario:" in report and "delta_theta | estimator" in report
     capsys.readouterr()
     variance.main(TINY + ["--out", out])  # a rerun finds every cell done
-    assert "variance" not in capsys.readouterr().err.split("wrote")[0]
+    err = capsys.readouterr().err
+    assert f"computed 0 cells, reused 12 from {stem}.csv" in err and "variance 1" not in err
     assert len(pd.read_csv(stem + ".csv")) == len(table)
+
+
+def test_rows_of_a_changed_theta0_are_never_reused(tmp_path, capsys):
+    """The cached scenario's theta0 moved by 1e-3 (same settings, so the same cache file):
+    every cell is computed again, under a new content hash, beside the old rows."""
+    from harness.records import load_pickle, save_pickle
+
+    out = str(tmp_path)
+    argv = TINY + ["--estimators", "rp", "--particles", "5", "--delta-theta", "0", "--out", out]
+    variance.main(argv)
+    [cached] = (tmp_path / ".cache").glob("scenario_cartpole_*.pkl")
+    scenario = load_pickle(str(cached))
+    save_pickle(scenario._replace(theta=jax.tree.map(lambda t: t + 1e-3, scenario.theta)), str(cached))
+    capsys.readouterr()
+    variance.main(argv)
+    assert "computed 1 cells, reused 0" in capsys.readouterr().err
+    rows = pd.read_csv(tmp_path / "variance_cartpole_gp.csv")
+    assert len(rows) == 2 and rows.scenario.nunique() == 2 and rows.scenario_settings.nunique() == 1
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -100,6 +119,11 @@ def test_result_table_writes_rows_in_its_header_order_and_skips_written_keys(tmp
     assert pd.read_csv(path).to_dict("list") == dict(cell=["a", "b"], variance=[1.5, 3.5], seconds=[2.0, 4.0])
     with pytest.raises(ValueError, match="another --out folder"):
         table.append(dict(cell="c", variance=1.0))
+    table.append(dict(cell="d", variance=1.0, seconds=1.0, scenario="abc"))  # a newer version's column
+    rows = pd.read_csv(path)
+    assert list(rows.columns) == ["cell", "variance", "seconds", "scenario"] and list(rows.cell) == ["a", "b", "d"]
+    assert rows.scenario.isna().tolist() == [True, True, False]
+    assert table.summary() == f"computed 2 cells, reused 1 from {path}"
 
 
 def test_alignment_statistics_on_known_cases():
