@@ -169,7 +169,7 @@ def findings(args: Args, rows: pd.DataFrame) -> list[str]:
     return lines
 
 
-def write_report(args: Args, rows: pd.DataFrame, reference_rse: float) -> None:
+def write_report(args: Args, rows: pd.DataFrame, reference_rse: float, objectives: list[str]) -> None:
     """The markdown: settings, the reference's quality, the table and what it says."""
     models = str_list(args.models)
     wide = rows.pivot_table(index=["estimator", "particles"], columns="model",
@@ -201,6 +201,7 @@ def write_report(args: Args, rows: pd.DataFrame, reference_rse: float) -> None:
         "",
         *scenario_lib.model_labels(args.task, str_list(args.models) + [args.reference_model]),
         args.scenario_line(rows, "; every model is evaluated at its theta0"),
+        *objectives,
         f"- Reference g*: the mean of {args.reference_repeats} {args.reference_estimator} estimates with "
         f"{args.reference_particles} particles on the {args.reference_model} dynamics; its relative standard error "
         f"(|standard error| / |g*|) is {reference_rse:.3f}, which bounds how close to 1 a cosine can be measured.",
@@ -220,7 +221,9 @@ def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
     rows, reference_rse = run(args)
-    write_report(args, rows, reference_rse)
+    objectives = [scenario_lib.objective_line(scenario_lib.setting(args, model), model, args.seed)
+                  for model in str_list(args.models)]
+    write_report(args, rows, reference_rse, objectives)
     print(f"wrote {os.path.join(args.out, f'compare_{args.task}')}.{{csv,md}}", file=sys.stderr)
 
 

@@ -36,7 +36,7 @@ import pandas as pd
 
 import estimators
 import tasks
-from estimators.base import Problem, draw_noise, per_particle, rollout, theta_dtype
+from estimators.base import draw_noise, per_particle, rollout, theta_dtype
 from harness import scenario as scenario_lib
 from harness.cli import float_list, parse, str_list
 from harness.lyapunov import finite_time_exponents
@@ -111,12 +111,6 @@ def mean_and_interval(samples: np.ndarray) -> tuple[float, float]:
     return float(samples.mean()), float(Z95 * samples.std(ddof=1) / np.sqrt(len(samples)))
 
 
-def particle_returns(problem: Problem, theta, key: jax.Array, num_particles: int) -> jax.Array:
-    """Each particle's return ``sum_t c(s_t)`` under the noise drawn with ``key``, (P,)."""
-    s0, eps = draw_noise(problem, key, num_particles, theta_dtype(theta))
-    return rollout(problem, per_particle(problem.policy.prepare(theta), num_particles), s0, eps).returns
-
-
 def measure_delta(args: Args, where: scenario_lib.Setting, delta: float, key: jax.Array, jitted: dict) -> dict:
     """Every column of one delta's row (see the module docstring)."""
     P = args.particles
@@ -172,7 +166,7 @@ def run(args: Args) -> tuple[pd.DataFrame, dict]:
     where = scenario_lib.setting(args, args.model)
     key = jax.random.fold_in(jax.random.key(args.seed), 3)
     jitted = {name: jax.jit(estimators.make(name), static_argnums=3) for name in str_list(args.estimators)}
-    jitted["returns"] = jax.jit(particle_returns, static_argnums=3)
+    jitted["returns"] = jax.jit(scenario_lib.particle_returns, static_argnums=3)
     for index, delta in enumerate(args.deltas):
         row_key = dict(task=args.task, model=args.model, particles=args.particles, delta_theta=float(delta),
                        seed=args.seed, scenario=where.content, fd_step=args.fd_step, estimators=args.estimators)
@@ -238,7 +232,7 @@ def findings(args: Args, rows: pd.DataFrame) -> list[str]:
     return lines
 
 
-def write_report(args: Args, rows: pd.DataFrame, slices: dict) -> None:
+def write_report(args: Args, rows: pd.DataFrame, slices: dict, objective: str) -> None:
     """The figure (panels a-g) and the markdown (settings, findings, the per-delta table)."""
     import matplotlib
 
@@ -306,6 +300,7 @@ def write_report(args: Args, rows: pd.DataFrame, slices: dict) -> None:
         "",
         *scenario_lib.model_labels(args.task, [args.model]),
         args.scenario_line(rows),
+        objective,
         f"- theta = theta0 + delta d, d a fixed random unit direction; one fixed key draws the {args.particles} "
         "particles at every delta; intervals are 95 % (1.96 standard errors over particles). FTLE: finite-time "
         "Lyapunov exponent of the closed-loop particle map with the noise fixed, per control step "
@@ -328,7 +323,8 @@ def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
     rows, slices = run(args)
-    write_report(args, rows, slices)
+    objective = scenario_lib.objective_line(scenario_lib.setting(args, args.model), args.model, args.seed)
+    write_report(args, rows, slices, objective)
     print(f"wrote {args.stem}.{{csv,md,png}}", file=sys.stderr)
 
 

@@ -188,7 +188,7 @@ def findings(table: pd.DataFrame) -> list[str]:
     return lines
 
 
-def write_report(args: Args, table: pd.DataFrame) -> None:
+def write_report(args: Args, table: pd.DataFrame, objective: str) -> None:
     """Markdown (settings, variance table, findings) and the log-log PNG."""
     import matplotlib
 
@@ -222,6 +222,7 @@ def write_report(args: Args, table: pd.DataFrame) -> None:
         "",
         *scenario_lib.model_labels(args.task, [args.model]),
         args.scenario_line(table),
+        objective,
         f"- Variance: trace of the covariance of {args.num_repeats} independent gradient estimates "
         f"(float{'64' if args.x64 else '32'}); theta = theta0 + delta d, d a fixed random unit direction.",
         "",
@@ -246,7 +247,8 @@ def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
     table = run(args)
-    write_report(args, table)
+    objective = scenario_lib.objective_line(scenario_lib.setting(args, args.model), args.model, args.seed)
+    write_report(args, table, objective)
     print(f"wrote {os.path.join(args.out, f'variance_{args.task}_{args.model}')}.{{csv,md,png}}", file=sys.stderr)
 
 

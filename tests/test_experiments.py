@@ -11,7 +11,8 @@ import pytest
 import tasks
 from harness import variance
 
-TINY = ["--particles", "5,8", "--repeats", "3", "--estimators", "rp,biw_lr,tp", "--scenario-trials", "1",
+TINY = ["--particles", "5,8", "--repeats", "3", "--estimators", "rp,biw_lr,tp", "--scenario-estimator", "tp",
+        "--scenario-trials", "1",
         "--scenario-steps", "3", "--scenario-particles", "5"]
 
 
@@ -31,7 +32,8 @@ def test_variance_runs_end_to_end_and_resumes(tmp_path, capsys):
     assert (table.variance > 0).all() and (table.nan_count == 0).all()
     assert os.path.getsize(stem + ".png") > 1000
     report = open(stem + ".md").read()
-    assert "Scenario:" in report and "delta_theta | estimator" in report
+    assert "Scenario:" in report and "delta_theta | estimator" in report and "Content hash" in report
+    assert "J under the gp model (2000 particles" in report and "at delta theta = 1.5" in report
     capsys.readouterr()
     variance.main(TINY + ["--out", out])  # a rerun finds every cell done
     err = capsys.readouterr().err
@@ -161,7 +163,8 @@ def test_landscape_runs_end_to_end_and_resumes(tmp_path, capsys, model):
     true dynamics through the compare experiment)."""
     from harness import landscape
 
-    argv = ["--model", model, "--particles", "6", "--points", "2", "--grid", "3", "--scenario-trials", "1",
+    argv = ["--model", model, "--particles", "6", "--points", "2", "--grid", "3", "--scenario-estimator", "tp",
+            "--scenario-trials", "1",
             "--scenario-steps", "3", "--scenario-particles", "5", "--out", str(tmp_path)]
     landscape.main(argv)
     stem = tmp_path / f"landscape_cartpole_{model}"
@@ -192,7 +195,8 @@ def test_compare_runs_end_to_end(tmp_path):
     from harness import compare
 
     compare.main(["--particles", "4", "--repeats", "2", "--estimators", "lr,tp", "--reference-particles", "8",
-                  "--reference-repeats", "2", "--scenario-trials", "1", "--scenario-steps", "3",
+                  "--reference-repeats", "2", "--scenario-estimator", "tp", "--scenario-trials", "1",
+                  "--scenario-steps", "3",
                   "--scenario-particles", "5", "--out", str(tmp_path)])
     rows = pd.read_csv(tmp_path / "compare_cartpole.csv")
     assert set(rows.model) == {"gp", "jax"} and len(rows) == 4
