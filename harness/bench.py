@@ -3,7 +3,8 @@ the projected time of one paper-setting learning experiment per method.
 
     python -m harness.bench [--particles 100,300,1000] [--repeats 5] [--estimators ...]
         [--learning-methods pilco,tp,... ("" to skip)] [--float32-learning-methods tp]
-        [--pseudo-input-learning-methods tp] [--fitc-learning-methods tp,pilco] [--out reports]
+        [--pseudo-input-learning-methods tp] [--fitc-learning-methods tp,pilco]
+        [--fitc-float32-learning-methods tp] [--out reports]
 
 Setting: the cart-pole (``pipps`` preset, T = 30) with a GP trained on ``trials`` random
 episodes (15 x 30 = 450 points, as after the paper's last trial), the RBF policy at its
@@ -65,6 +66,8 @@ class Args:
     """Methods timed again with PILCO's pseudo-input RBF policy."""
     fitc_learning_methods: str = "tp,pilco"
     """Methods timed again with the FITC sparse GP past 300 points."""
+    fitc_float32_learning_methods: str = "tp"
+    """Methods timed again with both the FITC sparse GP and float32 rollouts."""
     out: str = "reports"
     """Folder for bench.md and the CSVs."""
 
@@ -143,7 +146,8 @@ def main(argv=None) -> None:
     if args.learning_methods:
         learning = bench_learning.measure(str_list(args.learning_methods), str_list(args.float32_learning_methods),
                                           str_list(args.pseudo_input_learning_methods),
-                                          str_list(args.fitc_learning_methods), seed=args.seed)
+                                          str_list(args.fitc_learning_methods),
+                                          str_list(args.fitc_float32_learning_methods), seed=args.seed)
         learning.to_csv(os.path.join(args.out, "bench_learning.csv"), index=False)
     write_report(args, table, rate, task, num_points, learning)
 
@@ -159,7 +163,8 @@ def write_report(args: Args, table: pd.DataFrame, rate: float, task, num_points:
         f"--trials {args.trials} --learning-methods '{args.learning_methods}' "
         f"--float32-learning-methods '{args.float32_learning_methods}' "
         f"--pseudo-input-learning-methods '{args.pseudo_input_learning_methods}' "
-        f"--fitc-learning-methods '{args.fitc_learning_methods}'`",
+        f"--fitc-learning-methods '{args.fitc_learning_methods}' "
+        f"--fitc-float32-learning-methods '{args.fitc_float32_learning_methods}'`",
         "",
         f"- Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
         f"JAX {jax.__version__} on {jax.default_backend()}; float64.",

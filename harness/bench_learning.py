@@ -89,14 +89,16 @@ def project(step_s: dict[int, float], trial_rows: np.ndarray, steps: int) -> flo
 
 
 def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods: list[str] = (),
-            fitc_methods: list[str] = (), timed_steps: int = 3, seed: int = 0) -> pd.DataFrame:
+            fitc_methods: list[str] = (), fitc_float32_methods: list[str] = (), timed_steps: int = 3,
+            seed: int = 0) -> pd.DataFrame:
     """A row per (method, dtype, RBF form, GP): seconds per optimiser step at the timed trials,
     compile, GP fit and evaluation seconds, and the projected minutes (``optimise_min``,
     ``total_min``). ``methods`` run in float64 with the task's default (direct) RBF policy and
     the full GP, ``float32_methods`` in float32, ``pseudo_input_methods`` in float64 with PILCO's
     pseudo-input RBF form (the default before issue 18), ``fitc_methods`` in float64 with FITC
-    past ``NUM_INDUCING`` rows (module docstring)."""
-    unknown = [m for m in [*methods, *float32_methods, *pseudo_input_methods, *fitc_methods] if m not in METHODS]
+    past ``NUM_INDUCING`` rows (module docstring), ``fitc_float32_methods`` with both."""
+    everything = [*methods, *float32_methods, *pseudo_input_methods, *fitc_methods, *fitc_float32_methods]
+    unknown = [m for m in everything if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown}; valid methods: {list(METHODS)}")
     settings = PAPER_SETTINGS
@@ -109,8 +111,9 @@ def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods
     posteriors = {t: gp.truncate(gp.check_posterior(fit(filled[t - 1])), t * task.horizon) for t in TIMED_TRIALS}
     last = max(TIMED_TRIALS)
     fit_fitc = jax.jit(sparse_gp.fitter(NUM_INDUCING, int(filled[last - 1].num_valid), settings["gp_steps"]))
-    fitc_fit_s = timed(fit_fitc, filled[-1]) if fitc_methods else float("nan")
-    posteriors_fitc = posteriors | ({last: gp.check_posterior(fit_fitc(filled[last - 1]))} if fitc_methods else {})
+    any_fitc = bool(fitc_methods) or bool(fitc_float32_methods)
+    fitc_fit_s = timed(fit_fitc, filled[-1]) if any_fitc else float("nan")
+    posteriors_fitc = posteriors | ({last: gp.check_posterior(fit_fitc(filled[last - 1]))} if any_fitc else {})
     trials = np.arange(1, settings["learned_trials"] + 1)
     problems = {form: task_problem(tasks.make("cartpole", rbf_parameterisation=form), gp.GPModel(task))
                 for form in ("direct", "pseudo_inputs")}
@@ -120,7 +123,8 @@ def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods
     runs = ([(m, "float64", jnp.float64, "direct", 0) for m in methods]
             + [(m, "float32", jnp.float32, "direct", 0) for m in float32_methods]
             + [(m, "float64", jnp.float64, "pseudo_inputs", 0) for m in pseudo_input_methods]
-            + [(m, "float64", jnp.float64, "direct", NUM_INDUCING) for m in fitc_methods])
+            + [(m, "float64", jnp.float64, "direct", NUM_INDUCING) for m in fitc_methods]
+            + [(m, "float32", jnp.float32, "direct", NUM_INDUCING) for m in fitc_float32_methods])
     rows = []
     for index, (method, dtype_name, dtype, form, inducing) in enumerate(runs):
         steps = settings["pilco_steps"] if METHODS[method][0] == "pilco" else settings["optimiser_steps"]
