@@ -7,7 +7,13 @@ a threshold chosen from the pooled distribution of final evaluations of every me
 repeat in the table: the cut that minimises the within-group variance of the two groups it
 makes (Otsu's rule; where learning either swings the pole up or does not, the final costs are
 bimodal and the cut falls in the gap). The threshold, the two groups' separation (which says
-whether there was a gap to find) and the sorted final costs are printed with every table. Rates carry Wilson 95 % intervals.
+whether there was a gap to find) and the sorted final costs are printed with every table. Rates
+carry Wilson 95 % intervals.
+
+Beside the wide table the report holds: a long table (``success_rows``: per task, cost, k and method the rate, its
+interval, the paper's rate and whether that lies inside the interval), every rate recomputed at the threshold
+x (1 -+ ``ROBUSTNESS``) with what that changes (rates, orderings between methods, verdicts against the paper), the
+paper's orderings evaluated from the rates (``ordering_lines``), and the compute time per method (``compute_hours``).
 """
 
 from __future__ import annotations
@@ -15,10 +21,20 @@ from __future__ import annotations
 import os
 import sys
 
+from itertools import combinations
+
 import numpy as np
 import pandas as pd
+from scipy import stats
 
 Z95 = 1.96
+ALPHA = 0.05
+"""Level of the two-sided tests behind "significant" in the orderings."""
+ROBUSTNESS = 0.1
+"""Every rate is recomputed at the threshold x (1 - ROBUSTNESS) and x (1 + ROBUSTNESS)."""
+SCALES = (1 - ROBUSTNESS, 1.0, 1 + ROBUSTNESS)
+PAPER_METHODS = ("pilco", "rp", "rp_fs", "gr", "gr_fs", "lr", "tp")
+"""The methods of every column of the paper's tables, the ones the orderings compare."""
 
 PAPER = {  # PIPPS (Parmas et al. 2018), Tables 1-2: success rates over 100 repeats
     ("cartpole", "angle", 0.01): dict(pilco=0.88, rp=0.69, rp_fs=0.24, gr=0.63, gr_fs=0.74, lr=0.57, tp=0.82,
@@ -106,27 +122,272 @@ def nonfinite_lines(learned: pd.DataFrame) -> list[str]:
             "their settings say:", "", flagged[columns].to_markdown(index=False)]
 
 
-def success_table(rows: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
-    """Rows (task, cost, k), columns methods: 'rate [low, high] (paper p)'; and the
-    threshold per (task, cost)."""
+def otsu_thresholds(final: pd.DataFrame) -> dict:
+    """Otsu's threshold of the pooled final evaluation costs per (task, cost)."""
+    return {key: otsu_threshold(group.eval_mean) for key, group in final.groupby(["task", "cost"])}
+
+
+def inside(paper: float, low: float, high: float) -> str:
+    """'yes' where the paper's rate lies in [low, high], 'no' where not, '-' where the paper has none."""
+    if np.isnan(paper):
+        return "-"
+    return "yes" if low <= paper <= high else "no"
+
+
+def success_rows(rows: pd.DataFrame, scale: float = 1.0) -> pd.DataFrame:
+    """One row per (task, cost, k, label), in the paper's method order: its ``method``, ``options``
+    (the label's task options suffix), successes ``wins`` (final evaluation cost below ``scale`` x Otsu's threshold of
+    the task and cost), ``n`` repeats, ``rate``, its Wilson 95 % ``low`` and ``high``, the ``paper``'s
+    rate (NaN where it has none) and ``inside`` (whether that lies in the interval)."""
     final = final_evaluations(rows)
-    thresholds = {key: otsu_threshold(group.eval_mean) for key, group in final.groupby(["task", "cost"])}
-    cells = {}
+    thresholds = otsu_thresholds(final)
+    cells = []
     for (task, cost, k, label, method), group in final.groupby(["task", "cost", "noise_k", "label", "method"]):
-        wins = int((group.eval_mean < thresholds[(task, cost)]).sum())
-        low, high = wilson_interval(wins, len(group))
-        paper = PAPER.get((task, cost, float(k)), {}).get(method)
-        cells.setdefault((task, cost, k), {})[label] = (
-            f"{wins / len(group):.2f} [{low:.2f}, {high:.2f}] n={len(group)}"
-            + (f" (paper {paper:.2f})" if paper is not None else ""))
-    table = pd.DataFrame.from_dict(cells, orient="index")
-    table = table[column_order(table.columns)]
-    table.index = pd.MultiIndex.from_tuples(table.index, names=["task", "cost", "k"])
-    return table, thresholds
+        wins, n = int((group.eval_mean < scale * thresholds[(task, cost)]).sum()), len(group)
+        low, high = wilson_interval(wins, n)
+        paper = PAPER.get((task, cost, float(k)), {}).get(method, np.nan)
+        cells.append(dict(task=task, cost=cost, k=float(k), label=label, method=method, options=label[len(method):],
+                          wins=wins, n=n, rate=wins / n, low=low, high=high, paper=paper,
+                          inside=inside(paper, low, high)))
+    table = pd.DataFrame(cells)
+    rank = table.label.map({label: i for i, label in enumerate(column_order(table.label.unique()))})
+    table = table.assign(rank=rank).sort_values(["task", "cost", "k", "rank"])
+    return table.drop(columns="rank").reset_index(drop=True)
+
+
+def interval_text(row) -> str:
+    """'rate [low, high]' of a ``success_rows`` row."""
+    return f"{row.rate:.2f} [{row.low:.2f}, {row.high:.2f}]"
+
+
+def success_table(rows: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
+    """Rows (task, cost, k), columns methods: 'rate [low, high] n=N (paper p)'; and the
+    threshold per (task, cost)."""
+    success = success_rows(rows)
+    text = success.apply(lambda row: f"{interval_text(row)} n={row.n}"
+                         + ("" if np.isnan(row.paper) else f" (paper {row.paper:.2f})"), axis=1)
+    table = success.assign(text=text).pivot(index=["task", "cost", "k"], columns="label", values="text")
+    return table[column_order(table.columns)], otsu_thresholds(final_evaluations(rows))
+
+
+def rates_at_scales(rows: pd.DataFrame) -> dict[float, pd.DataFrame]:
+    """``success_rows`` at the threshold x every scale of ``SCALES``, indexed by (task, cost, k, label)."""
+    return {scale: success_rows(rows, scale).set_index(["task", "cost", "k", "label"]) for scale in SCALES}
+
+
+def long_table(at: dict[float, pd.DataFrame]) -> pd.DataFrame:
+    """The long table for the report: per cell n, rate [interval], the paper's rate, whether it lies
+    inside, and the rate at the threshold x every scale."""
+    base = at[1.0]
+    table = pd.DataFrame({"n": base.n, "rate [95 % interval]": base.apply(interval_text, axis=1),
+                          "paper": base.paper.map(lambda p: "-" if np.isnan(p) else f"{p:.2f}"), "inside": base.inside})
+    for scale in SCALES:
+        table[f"rate at T x {scale:g}"] = at[scale].rate.map("{:.2f}".format)
+    table = table.reset_index()
+    return table.assign(k=table.k.map("{:g}".format))
+
+
+def cell_name(key: tuple) -> str:
+    """'task, cost, k = K, label' of a (task, cost, k, label) key."""
+    return f"{key[0]}, {key[1]}, k = {key[2]:g}, {key[3]}"
+
+
+def changes(values: pd.DataFrame) -> list[str]:
+    """'cell: v1 / v2 / v3' for every row of ``values`` (cells x scales) whose value differs between scales."""
+    return [f"{cell_name(key)}: {' / '.join(map(str, row))}" for key, row in values.iterrows() if row.nunique() > 1]
+
+
+def ordering_changes(rates: pd.DataFrame) -> list[str]:
+    """Pairs of labels in one (task, cost, k) whose order by rate ('<', '=', '>') differs between the
+    scales of ``rates`` (cells x scales); labels of ``INVALID_METHODS`` are left out."""
+    found = []
+    for (task, cost, k), cell in rates.groupby(level=["task", "cost", "k"]):
+        cell = cell.droplevel(["task", "cost", "k"])
+        cell = cell[[label.split(" [")[0] not in INVALID_METHODS for label in cell.index]]
+        for a, b in combinations(cell.index, 2):
+            signs = np.sign(cell.loc[a] - cell.loc[b]).map({-1.0: "<", 0.0: "=", 1.0: ">"})
+            if signs.nunique() > 1:
+                found.append(f"{cell_name((task, cost, k, a))} vs {b}: {' / '.join(signs)}")
+    return found
+
+
+def robustness_lines(at: dict[float, pd.DataFrame], thresholds: dict) -> list[str]:
+    """What changes when the threshold T is scaled by each of ``SCALES``: the rates, the orderings
+    between methods and the verdicts against the paper, each listed as 'value at T x 0.9 / T / T x 1.1'."""
+    scales = " / ".join(f"T x {scale:g}" for scale in SCALES)
+    lines = [f"Threshold robustness: the rule stays Otsu's, fixed before the data; every rate recomputed at {scales} "
+             f"(ROBUSTNESS = {ROBUSTNESS:g}), values listed in that order:", ""]
+    lines += [f"- Thresholds for {task}, {cost}: " + " / ".join(f"{scale * t:.3f}" for scale in SCALES)
+              for (task, cost), t in thresholds.items()]
+    rates = pd.concat({scale: cells.rate for scale, cells in at.items()}, axis=1)
+    found = {"Rates that change (flips)": changes(rates.map("{:.2f}".format)),
+             "Orderings between methods (INVALID ones left out) that change": ordering_changes(rates),
+             "Inside/outside verdicts against the paper that change": changes(
+                 pd.concat({scale: cells.inside for scale, cells in at.items()}, axis=1))}
+    return lines + [f"- {what}: " + (f"{len(items)} ({'; '.join(items)})" if items else "none") + "."
+                    for what, items in found.items()]
+
+
+def fisher_p(a, b) -> float:
+    """Two-sided Fisher exact p-value of equal success rates of two ``success_rows`` rows."""
+    return float(stats.fisher_exact([[a.wins, a.n - a.wins], [b.wins, b.n - b.wins]])[1])
+
+
+def retained_fraction_p(a_first, a_last, b_first, b_last) -> float:
+    """Two-sided p-value of equal fractions of the rate kept from the smallest to the largest k
+    (``a_last / a_first`` against ``b_last / b_first``, four independent ``success_rows`` rows): a
+    Wald z-test of the difference of the log ratios (delta method: var log p = (1 - p) / (n p)),
+    each rate adjusted by one success and one failure (Agresti and Caffo), so that rates of 0 or
+    1 keep a finite log and a variance."""
+    rates = [((r.wins + 1) / (r.n + 2), r.n + 2) for r in (a_first, a_last, b_first, b_last)]
+    logs = [np.log(p) for p, _ in rates]
+    difference = (logs[1] - logs[0]) - (logs[3] - logs[2])
+    sd = np.sqrt(sum((1 - p) / (n * p) for p, n in rates))
+    return float(2 * stats.norm.sf(abs(difference) / sd))
+
+
+def verdict(holds: bool, pvalues: dict[str, float], test: str) -> str:
+    """'holds' or 'does not hold' (the point estimates), then 'significant' where every comparison's
+    two-sided p-value (``pvalues``: comparison -> p) is below ``ALPHA``, quoting the largest."""
+    worst = max(pvalues, key=pvalues.get)
+    which = f", the largest of {len(pvalues)}: {worst}" if len(pvalues) > 1 else ""
+    sign = f"significant at {ALPHA:g}" if pvalues[worst] < ALPHA else f"not significant at {ALPHA:g}, so undecided"
+    return (f"{'holds' if holds else 'does not hold'} on the point estimates; {sign} "
+            f"({test} p = {pvalues[worst]:.3g}{which})")
+
+
+def rate_text(row) -> str:
+    """'METHOD rate [low, high] n=N' of a ``success_rows`` row."""
+    return f"{row.method.upper()} {interval_text(row)} n={row.n}"
+
+
+def missing(present, methods) -> str:
+    """'not measured (no ... rows)' where a method of ``methods`` is not among ``present``, else ''."""
+    present = set(present)
+    absent = [m.upper() for m in methods if m not in present]
+    return f"not measured (no {', '.join(absent)} rows)" if absent else ""
+
+
+def claim_tp_not_below_pilco(group: pd.DataFrame) -> str:
+    """Claim (a), TP >= PILCO at k = 1, in one (task, cost, options) group of ``success_rows``."""
+    cell = group[group.k == 1.0].set_index("method", drop=False)
+    if absent := missing(cell.index, ["tp", "pilco"]):
+        return absent + " at k = 1"
+    tp, pilco = cell.loc["tp"], cell.loc["pilco"]
+    return f"{rate_text(tp)} vs {rate_text(pilco)}: " + verdict(
+        tp.rate >= pilco.rate, {"TP vs PILCO": fisher_p(tp, pilco)}, "two-sided Fisher exact")
+
+
+def needs_ks(task: str, cost: str, k: float) -> str:
+    """Claim (b) undecided on a file with the single k ``k``: the k it needs (the paper's for the task and cost)."""
+    paper_ks = sorted(pk for t, c, pk in PAPER if (t, c) == (task, cost))
+    needed = f"k in {{{', '.join(f'{pk:g}' for pk in paper_ks)}}}" if len(paper_ks) > 1 else "at least two k"
+    return f"undecided: needs {needed} (this file has only k = {k:g})"
+
+
+def claim_lr_tp_degrade_least(group: pd.DataFrame) -> str:
+    """Claim (b), LR and TP lose the smallest fraction of their rate from the smallest to the
+    largest k, in one (task, cost, options) group of ``success_rows``; compares the paper's methods measured at both ends."""
+    ks = sorted(group.k.unique())
+    if absent := missing(group.method, ["lr", "tp"]):
+        return absent
+    if len(ks) < 2:
+        return needs_ks(group.task.iloc[0], group.cost.iloc[0], ks[0])
+    first, last = (group[group.k == k].set_index("method", drop=False) for k in (ks[0], ks[-1]))
+    both = set(first.index) & set(last.index)
+    if absent := missing(both, ["lr", "tp"]):
+        return f"{absent} at both k = {ks[0]:g} and k = {ks[-1]:g}"
+    others = [m for m in PAPER_METHODS if m not in ("lr", "tp") and m in both]
+    if not others:
+        return f"not measured (no other method of the paper at both k = {ks[0]:g} and k = {ks[-1]:g})"
+    drops = {m: relative_drop(first.loc[m].rate, last.loc[m].rate) for m in ["lr", "tp", *others]}
+    pvalues = {f"{a.upper()} vs {b.upper()}": retained_fraction_p(first.loc[a], last.loc[a], first.loc[b],
+                                                                  last.loc[b])
+               for a in ("lr", "tp") for b in others}
+    return (f"relative drop in rate (1 - rate at k = {ks[-1]:g} / rate at k = {ks[0]:g}): "
+            + ", ".join(f"{m.upper()} {drop:.2f}" for m, drop in drops.items()) + ": "
+            + verdict(max(drops["lr"], drops["tp"]) <= min(drops[m] for m in others), pvalues,
+                      "two-sided Wald test of equal log ratios, Agresti-Caffo adjusted,"))
+
+
+def relative_drop(first: float, last: float) -> float:
+    """``1 - last / first``: the fraction of its rate a method loses (0 where it had none to lose)."""
+    return 1 - last / first if first > 0 else 0.0
+
+
+def claim_rp_fs_worst(cell: pd.DataFrame) -> str:
+    """Claim (c), RP_FS has the lowest rate of the paper's methods, in one (task, cost, k, options)
+    cell of ``success_rows``."""
+    cell = cell.set_index("method", drop=False)
+    others = [m for m in PAPER_METHODS if m != "rp_fs" and m in cell.index]
+    if absent := missing(cell.index, ["rp_fs"]):
+        return absent
+    if not others:
+        return "not measured (no other method of the paper)"
+    rp_fs, lowest = cell.loc["rp_fs"], cell.loc[others].rate.idxmin()
+    pvalues = {f"RP_FS vs {m.upper()}": fisher_p(rp_fs, cell.loc[m]) for m in others}
+    return f"{rate_text(rp_fs)} vs the lowest other, {rate_text(cell.loc[lowest])}: " + verdict(
+        rp_fs.rate <= cell.loc[lowest].rate, pvalues, "two-sided Fisher exact")
+
+
+def ordering_lines(success: pd.DataFrame) -> list[str]:
+    """The paper's orderings evaluated from ``success_rows``, a line each per (task, cost, task options)
+    and, for (c), per k: (a) TP >= PILCO at k = 1, (b) LR and TP degrade least as k grows, (c) RP_FS
+    is the worst method."""
+    lines = []
+    for (task, cost, options), group in success.groupby(["task", "cost", "options"]):
+        name = f"{task}, {cost}{options}"
+        lines += [f"- (a) TP >= PILCO at k = 1 ({name}): {claim_tp_not_below_pilco(group)}.",
+                  f"- (b) LR and TP degrade least as k grows ({name}): {claim_lr_tp_degrade_least(group)}."]
+        lines += [f"- (c) RP_FS is the worst method ({name}, k = {k:g}): {claim_rp_fs_worst(cell)}."
+                  for k, cell in group.groupby("k")]
+    return lines
+
+
+def compute_hours(rows: pd.DataFrame) -> pd.DataFrame:
+    """Per label, and in total: ``repeats``, ``hours`` and ``hours per repeat`` of compute.
+
+    ``harness.learn`` runs a method's repeats in batches, vmapped together, and writes on every
+    repeat's row of a trial the same ``seconds``: the wall time since the batch began (carried
+    over a resume; the time between an interruption and its rerun is not in it). So a batch's
+    time is its last trial's ``seconds``, repeated on each of its repeats' rows: summing rows
+    would count it once per trial and repeat. A batch is recognised by that shared clock (its
+    repeats' largest ``seconds`` are equal; repeats of different batches are not), and each
+    batch's time is counted once. Hours per repeat = hours / repeats: the repeats of a batch share
+    its time. Batches run one after another within a run; runs in parallel processes add up."""
+    keys = ["task", "cost", "noise_k", "task_options", "label", "settings"]
+    experiments = with_labels(rows).groupby(keys + ["repeat"], as_index=False).seconds.max()
+    batches = experiments.drop_duplicates(keys + ["seconds"])
+    table = pd.DataFrame({"repeats": experiments.groupby("label").size(),
+                          "hours": batches.groupby("label").seconds.sum() / 3600})
+    table = table.loc[column_order(table.index)]
+    table.loc["total"] = table.sum()
+    return table.assign(**{"hours per repeat": table.hours / table.repeats}).rename_axis("label")
+
+
+def paper_comparison_lines(rows: pd.DataFrame, thresholds: dict) -> list[str]:
+    """Report lines: the long table (rates against the paper's, at the three thresholds), what the
+    threshold's scaling changes, and the paper's orderings evaluated from the rates."""
+    at = rates_at_scales(rows)
+    return ["Per cell (T: the threshold above): success rate [Wilson 95 % interval], the paper's rate, whether it "
+            "lies inside the interval ('-': the paper has no rate), and the rate at the threshold scaled:", "",
+            long_table(at).to_markdown(index=False, disable_numparse=True), "", *robustness_lines(at, thresholds), "",
+            f"The paper's orderings from these rates (holds: the point estimates agree with the claim; significant: "
+            f"a two-sided test rejects equality at {ALPHA:g}; 'not measured': a method of the claim is absent):", "",
+            *ordering_lines(at[1.0].reset_index())]
+
+
+def compute_lines(rows: pd.DataFrame) -> list[str]:
+    """Report lines: the compute time per method (``compute_hours``) and what it counts."""
+    return ["Compute time: per batch of repeats vmapped together, its wall time (the `seconds` of its last trial, "
+            "which `harness.learn` writes on every repeat's row as the time since the batch began), counted once per "
+            "batch and summed; hours per repeat = hours / repeats (a batch's repeats share its time):", "",
+            compute_hours(rows).reset_index().to_markdown(index=False, floatfmt=".2f"), ""]
 
 
 def write(rows: pd.DataFrame, stem: str, command: str) -> None:
-    """``stem.md`` (thresholds, success table, per-method final costs) and ``stem.png``
+    """``stem.md`` (thresholds, success tables, threshold robustness, the paper's orderings, compute
+    time, per-method final costs) and ``stem.png``
     (learning curves: mean evaluation cost against trial, 95 % bands)."""
     import matplotlib
 
@@ -138,10 +399,10 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
     learned = with_labels(rows[rows.learned.astype(bool)])
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for index, label in enumerate(column_order(learned.label.unique())):
-        stats = learned[learned.label == label].groupby("trial").eval_mean.agg(["mean", "std", "count"])
-        half = Z95 * stats["std"].fillna(0) / np.sqrt(stats["count"])
-        ax.plot(stats.index + 1, stats["mean"], marker="o", color=f"C{index}", label=label)
-        ax.fill_between(stats.index + 1, stats["mean"] - half, stats["mean"] + half, color=f"C{index}", alpha=0.2)
+        curve = learned[learned.label == label].groupby("trial").eval_mean.agg(["mean", "std", "count"])
+        half = Z95 * curve["std"].fillna(0) / np.sqrt(curve["count"])
+        ax.plot(curve.index + 1, curve["mean"], marker="o", color=f"C{index}", label=label)
+        ax.fill_between(curve.index + 1, curve["mean"] - half, curve["mean"] + half, color=f"C{index}", alpha=0.2)
     for (task, cost), threshold in thresholds.items():
         ax.axhline(threshold, color="k", linestyle="--", linewidth=0.8, label=f"success threshold {threshold:.2f}")
     ax.set_xlabel("trial")
@@ -160,13 +421,14 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
         separation = (high.mean() - low.mean()) / spread if len(low) and len(high) and spread > 0 else np.nan
         lines.append(f"- Success threshold for {task}, {cost} cost: final evaluation cost < {threshold:.3f} (Otsu's "
                      f"cut of the {len(values)} pooled final costs; the two groups' means differ by {separation:.1f} "
-                     "within-group sd, where one normal sample gives about 2.7 and a uniform one 3.4: only a value well "
-                     "above that, say > 6, shows a real gap between learned and failed runs; below it the rates "
+                     "within-group sd, where one normal sample gives about 2.7 and a uniform one 3.4: only a value "
+                     "well above that, say > 6, shows a real gap between learned and failed runs; below it the rates "
                      f"depend on an arbitrary cut). Sorted: {', '.join(f'{v:.2f}' for v in values)}.")
     lines += ["", *nonfinite_lines(learned), "",
               "Success rate [Wilson 95 % interval] n = repeats (the paper's rate, 100 repeats):", "",
               table.reset_index().to_markdown(index=False), "",
               *[f"- `{m}`: INVALID, {why}." for m, why in INVALID_METHODS.items() if m in set(final.method)],
+              "", *paper_comparison_lines(rows, thresholds), "", *compute_lines(rows),
               "", f"![learning curves]({os.path.basename(stem)}.png)", "",
               "Mean evaluation cost after each learned trial (mean over repeats):", "",
               learned.pivot_table(index="trial", columns="label", values="eval_mean", aggfunc="mean")[

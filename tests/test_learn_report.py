@@ -1,0 +1,142 @@
+"""The learning report's comparison with the paper, on small synthetic tables: the inside-interval
+verdict, the threshold's robustness, the compute time and the paper's orderings."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from harness import learn_report
+
+OPTIONS = "preset=pipps,horizon=30,cost_type=angle"
+WIN, FAIL = 5.0, 30.0  # final costs of a learned and a failed run: Otsu's cut falls at 17.5 between them
+
+
+def row(method, repeat, trial, eval_mean=np.nan, seconds=1.0, k=1.0):
+    """One row of the learning CSV (trial 0 random, later trials learned)."""
+    return dict(task="cartpole", cost="angle", noise_k=k, task_options=OPTIONS, method=method, repeat=repeat,
+                seed=repeat, settings="s", trial=trial, learned=trial > 0, trial_return=20.0, eval_mean=eval_mean,
+                eval_std=0.1, data_points=30 * (trial + 1), nonfinite_steps=0.0 if trial else np.nan,
+                seconds=seconds)
+
+
+def rows_of(finals: dict) -> pd.DataFrame:
+    """A random and a learned trial per repeat, each repeat its own batch; ``finals`` maps (method, k)
+    to the final evaluation costs of its repeats."""
+    return pd.DataFrame([r for (method, k), costs in finals.items() for repeat, cost in enumerate(costs)
+                         for r in (row(method, repeat, 0, k=k), row(method, repeat, 1, cost, 10.0 + repeat, k=k))])
+
+
+def wins(method: str, successes: int, n: int = 10, k: float = 1.0) -> dict:
+    """``finals`` entry: ``successes`` of ``n`` repeats learned."""
+    return {(method, k): [WIN] * successes + [FAIL] * (n - successes)}
+
+
+def test_the_papers_rate_is_inside_or_outside_the_wilson_interval():
+    success = learn_report.success_rows(rows_of({**wins("tp", 7), **wins("pilco", 7), **wins("lr_plain", 7)}))
+    by_method = success.set_index("method")
+    assert list(success.method) == ["pilco", "lr_plain", "tp"]  # the paper's column order
+    # 7 of 10, by hand: centre (0.7 + 1.96^2/20) / (1 + 1.96^2/10) = 0.64449,
+    # half width 1.96 sqrt(0.7 * 0.3 / 10 + 1.96^2 / 400) / (1 + 1.96^2/10) = 0.24772
+    assert by_method.loc["tp", "low"] == pytest.approx(0.64449 - 0.24772, abs=1e-4)
+    assert by_method.loc["tp", "high"] == pytest.approx(0.64449 + 0.24772, abs=1e-4)
+    assert by_method.loc["tp", ["wins", "n", "rate"]].tolist() == [7, 10, 0.7]
+    assert (by_method.loc["tp", "paper"], by_method.loc["tp", "inside"]) == (0.99, "no")
+    assert (by_method.loc["pilco", "paper"], by_method.loc["pilco", "inside"]) == (0.79, "yes")
+    assert np.isnan(by_method.loc["lr_plain", "paper"]) and by_method.loc["lr_plain", "inside"] == "-"
+    assert learn_report.inside(0.3968, 0.3968, 0.8922) == "yes"  # the ends belong to the interval
+    table, thresholds = learn_report.success_table(rows_of({**wins("tp", 7), **wins("pilco", 7)}))
+    assert table.loc[("cartpole", "angle", 1.0), "tp"] == "0.70 [0.40, 0.89] n=10 (paper 0.99)"
+    assert thresholds == {("cartpole", "angle"): pytest.approx(17.5)}
+
+
+def robustness(rows: pd.DataFrame) -> list[str]:
+    """The report's robustness lines of ``rows``."""
+    thresholds = learn_report.otsu_thresholds(learn_report.final_evaluations(rows))
+    return learn_report.robustness_lines(learn_report.rates_at_scales(rows), thresholds)
+
+
+def test_threshold_robustness_reports_flips_only_where_a_final_cost_lies_within_the_margin():
+    steady = robustness(rows_of({**wins("tp", 7), **wins("pilco", 7)}))
+    assert "- Thresholds for cartpole, angle: 15.750 / 17.500 / 19.250" in steady
+    assert all(line.endswith(": none.") for line in steady[-3:])
+    # pilco's costs 16, 16 and 18 lie within 10 % of the threshold (Otsu's cut: 17): 5, 7, 8 wins
+    pilco = {("pilco", 1.0): [WIN] * 5 + [16.0, 16.0, 18.0, FAIL, FAIL]}
+    moved = robustness(rows_of({**wins("tp", 7), **pilco}))
+    assert "- Thresholds for cartpole, angle: 15.300 / 17.000 / 18.700" in moved
+    assert "- Rates that change (flips): 1 (cartpole, angle, k = 1, pilco: 0.50 / 0.70 / 0.80)." in moved
+    assert ("- Orderings between methods (INVALID ones left out) that change: 1 (cartpole, angle, k = 1, pilco vs "
+            "tp: < / = / >).") in moved
+    # 5 of 10: [0.24, 0.76] leaves out the paper's 0.79
+    assert ("- Inside/outside verdicts against the paper that change: 1 (cartpole, angle, k = 1, pilco: "
+            "no / yes / yes).") in moved
+    assert learn_report.SCALES == (1 - learn_report.ROBUSTNESS, 1.0, 1 + learn_report.ROBUSTNESS)
+
+
+def test_compute_time_counts_each_batch_once():
+    """A batch writes its clock (seconds since it began) on every repeat's row: tp's repeats 0 and 1
+    share a batch of 250 s, repeat 2 ran alone for 200 s, pilco's one repeat for 120 s."""
+    timed = [("tp", 0, 5.0, 250.0), ("tp", 1, 5.0, 250.0), ("tp", 2, 4.0, 200.0), ("pilco", 0, 3.0, 120.0)]
+    rows = pd.DataFrame([r for method, repeat, first, last in timed
+                         for r in (row(method, repeat, 0, seconds=first), row(method, repeat, 1, WIN, last))])
+    hours = learn_report.compute_hours(rows)
+    assert list(hours.index) == ["pilco", "tp", "total"]
+    assert hours.repeats.tolist() == [1, 3, 4]
+    assert hours.hours.tolist() == pytest.approx([120 / 3600, 450 / 3600, 570 / 3600])
+    assert hours["hours per repeat"].tolist() == pytest.approx([120 / 3600, 150 / 3600, 570 / 3600 / 4])
+
+
+def orderings(finals: dict) -> list[str]:
+    """The report's ordering lines of ``finals``."""
+    return learn_report.ordering_lines(learn_report.success_rows(rows_of(finals)))
+
+
+def test_orderings_hold_significantly_or_are_not_measured():
+    tp_ahead = orderings({**wins("tp", 9), **wins("pilco", 2)})
+    assert tp_ahead[0] == ("- (a) TP >= PILCO at k = 1 (cartpole, angle): TP 0.90 [0.60, 0.98] n=10 vs PILCO 0.20 "
+                           "[0.06, 0.51] n=10: holds on the point estimates; significant at 0.05 (two-sided Fisher "
+                           "exact p = 0.00548).")  # [[9, 1], [2, 8]]: p = 0.005477
+    assert "(b) LR and TP degrade least as k grows (cartpole, angle): not measured (no LR rows)." in tp_ahead[1]
+    assert tp_ahead[2].endswith("(c) RP_FS is the worst method (cartpole, angle, k = 1): not measured (no RP_FS rows).")
+    tied = orderings({**wins("tp", 7), **wins("pilco", 7)})[0]
+    assert "holds on the point estimates; not significant at 0.05, so undecided (two-sided Fisher exact p = 1)" in tied
+    assert orderings(wins("tp", 9))[0].endswith("not measured (no PILCO rows) at k = 1.")
+
+
+def test_degradation_and_worst_method_claims():
+    single_k = orderings({**wins("lr", 9), **wins("tp", 9), **wins("pilco", 9)})[1]
+    assert single_k.endswith("undecided: needs k in {0.01, 1, 4, 9, 16} (this file has only k = 1).")
+    finals = {**wins("lr", 9), **wins("tp", 9), **wins("pilco", 9), **wins("rp", 9),
+              **wins("lr", 8, k=16.0), **wins("tp", 8, k=16.0), **wins("pilco", 1, k=16.0), **wins("rp", 0, k=16.0)}
+    assert orderings(finals)[1] == (
+        "- (b) LR and TP degrade least as k grows (cartpole, angle): relative drop in rate (1 - rate at k = 16 / rate "
+        "at k = 1): LR 0.11, TP 0.11, PILCO 0.89, RP 1.00: holds on the point estimates; significant at 0.05 "
+        "(two-sided Wald test of equal log ratios, Agresti-Caffo adjusted, p = 0.0296, the largest of 4: LR vs "
+        "PILCO).")  # log(9/10) - log(2/10) = 1.504 over sd sqrt(1/60 + 1/36 + 1/60 + 5/12) = 0.6912: z = 2.176
+    finals.update({**wins("rp_fs", 3), **wins("rp_fs", 0, k=16.0)})  # loses all: more than LR, not significantly
+    lines = orderings(finals)
+    assert "RP_FS 1.00: holds on the point estimates; not significant at 0.05, so undecided" in lines[1]
+    assert lines[1].endswith("the largest of 6: LR vs RP_FS).")
+    assert lines[2] == ("- (c) RP_FS is the worst method (cartpole, angle, k = 1): RP_FS 0.30 [0.11, 0.60] n=10 vs "
+                        "the lowest other, PILCO 0.90 [0.60, 0.98] n=10: holds on the point estimates; significant at "
+                        "0.05 (two-sided Fisher exact p = 0.0198, the largest of 4: RP_FS vs PILCO).")
+    assert "holds on the point estimates; not significant at 0.05, so undecided" in lines[3]  # k = 16: RP_FS = RP = 0
+    success = learn_report.success_rows(rows_of(finals)).set_index(["method", "k"])
+    equal = learn_report.retained_fraction_p(*(success.loc[key] for key in [("lr", 1.0), ("lr", 16.0),
+                                                                          ("tp", 1.0), ("tp", 16.0)]))
+    assert equal == pytest.approx(1.0)
+
+
+def test_the_report_carries_the_comparison_with_the_paper(tmp_path):
+    path = tmp_path / "learn_cartpole_angle_k1_quick.csv"
+    rows_of({**wins("tp", 9), **wins("pilco", 2), **wins("rp_fs_seed0", 3)}).to_csv(path, index=False)
+    learn_report.main([str(path)])
+    report = (tmp_path / "learn_cartpole_angle_k1_quick.md").read_text()
+    for text in ["Success threshold for cartpole, angle cost: final evaluation cost < 17.500",
+                 "| task     | cost   | k   | label       | n   | rate [95 % interval]   | paper   | inside   |",
+                 "| cartpole | angle  | 1   | tp          | 10  | 0.90 [0.60, 0.98]      | 0.99    | no       |",
+                 "Threshold robustness", "- Rates that change (flips): none.",
+                 "The paper's orderings", "- (a) TP >= PILCO at k = 1 (cartpole, angle): TP 0.90",
+                 "Compute time", "| total       |        30 |",
+                 "`rp_fs_seed0`: INVALID", "Non-finite gradient estimates: none", "![learning curves]"]:
+        assert text in report, text
+    assert (tmp_path / "learn_cartpole_angle_k1_quick.png").exists()
