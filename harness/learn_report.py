@@ -287,7 +287,8 @@ def needs_ks(task: str, cost: str, k: float) -> str:
 
 def claim_lr_tp_degrade_least(group: pd.DataFrame) -> str:
     """Claim (b), LR and TP lose the smallest fraction of their rate from the smallest to the
-    largest k, in one (task, cost, options) group of ``success_rows``; compares the paper's methods measured at both ends."""
+    largest k, in one (task, cost, options) group of ``success_rows``; compares the paper's
+    methods measured at both ends."""
     ks = sorted(group.k.unique())
     if absent := missing(group.method, ["lr", "tp"]):
         return absent
@@ -417,8 +418,10 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
     for (task, cost), threshold in thresholds.items():
         values = np.sort(final[(final.task == task) & (final.cost == cost)].eval_mean.to_numpy())
         low, high = values[values < threshold], values[values >= threshold]
-        spread = np.sqrt((np.sum((low - low.mean()) ** 2) + np.sum((high - high.mean()) ** 2)) / len(values))
-        separation = (high.mean() - low.mean()) / spread if len(low) and len(high) and spread > 0 else np.nan
+        separation = np.nan  # one group is empty where every run is on the same side of the cut
+        if len(low) and len(high):
+            spread = np.sqrt((np.sum((low - low.mean()) ** 2) + np.sum((high - high.mean()) ** 2)) / len(values))
+            separation = (high.mean() - low.mean()) / spread if spread > 0 else np.nan
         lines.append(f"- Success threshold for {task}, {cost} cost: final evaluation cost < {threshold:.3f} (Otsu's "
                      f"cut of the {len(values)} pooled final costs; the two groups' means differ by {separation:.1f} "
                      "within-group sd, where one normal sample gives about 2.7 and a uniform one 3.4: only a value "
