@@ -283,6 +283,8 @@ def recompute(name: str, args: Args, out: str) -> tuple[str, dict[str, str]]:
 
 
 def run(args: Args) -> pd.DataFrame:
+    """Every check of ``args`` in turn (writing ``reproduce.csv`` after each); returns the table
+    and writes ``reproduce.md`` with the commands run and how many quantities agree."""
     out = args.out or tempfile.mkdtemp(prefix="reproduce_")
     rows, commands = [], []
     for name in args.names:
