@@ -74,10 +74,15 @@ def variance_rule(name: str, committed: float, repeats_c: int, recomputed: float
                 agrees=bool(low <= ratio <= high))
 
 
-def report_command(md_path: str) -> tuple[str, list[str]]:
-    """The module and arguments of a report's "Command: `python -m MODULE ARGS`" line."""
-    with open(md_path) as f:
-        found = re.search(r"Command: `python -m ([\w.]+) ([^`]*)`", f.read())
+def read_text(path: str) -> str:
+    with open(path) as f:
+        return f.read()
+
+
+def report_command(md_path: str, text: str | None = None) -> tuple[str, list[str]]:
+    """The module and arguments of a report's "Command: `python -m MODULE ARGS`" line (``text``:
+    the report's markdown, if already read)."""
+    found = re.search(r"Command: `python -m ([\w.]+) ([^`]*)`", read_text(md_path) if text is None else text)
     if found is None:
         raise ValueError(f"{md_path} has no 'Command: `python -m ...`' line to rerun")
     return found.group(1), shlex.split(found.group(2))
@@ -105,7 +110,7 @@ def flag_values(argv: list[str]) -> dict[str, str]:
 
 def scenario_and_objective(committed_md: str, recomputed_md: str, recomputed_rows: pd.DataFrame) -> list[dict]:
     """The content-hash row and one row per J printed by both reports ("a +- ci at delta theta = d")."""
-    texts = [open(path).read() for path in (committed_md, recomputed_md)]
+    texts = [read_text(path) for path in (committed_md, recomputed_md)]
     committed_hash = re.search(r"Content hash ([0-9a-f, ]+) \(", texts[0])
     recomputed_hash = ", ".join(sorted(map(str, recomputed_rows.scenario.unique())))
     rows = [dict(quantity="scenario content hash", committed=committed_hash.group(1) if committed_hash else
@@ -124,11 +129,12 @@ def committed_rows(stem: str) -> pd.DataFrame:
     """The committed CSV's rows that its report shows: its command's repeats and seed, and the
     scenario it names (any, for rows that predate content hashes)."""
     rows = pd.read_csv(stem + ".csv")
-    flags = flag_values(report_command(stem + ".md")[1])
+    text = read_text(stem + ".md")
+    flags = flag_values(report_command(stem + ".md", text)[1])
     for column in ("repeats", "seed"):
         if f"--{column}" in flags and column in rows:
             rows = rows[rows[column] == int(flags[f"--{column}"])]
-    found = re.search(r"Content hash ([0-9a-f]+) \(", open(stem + ".md").read())
+    found = re.search(r"Content hash ([0-9a-f]+) \(", text)
     return rows[rows.scenario == found.group(1)] if found else rows
 
 
