@@ -18,8 +18,8 @@ A method's repeats run ``batch`` at a time, vmapped over their seeds (one compil
 per batch; the optimiser works on the GP trimmed to the rows held). Every trial of a batch's
 experiments is appended to ``learn_{task}_{cost}_k{k}[_{preset}].csv`` when the batch ends; a rerun
 skips finished experiments. Between trials the batch's state (data, theta, rows so far) is
-saved under ``{out}/.cache/learn/``, so a rerun of an interrupted batch continues after its
-last finished trial (with the same repeats, settings and precision). Progress (batch, trial,
+saved under ``{out}/.cache/learn/`` (or ``--checkpoints DIR``), so a rerun of an interrupted
+batch continues after its last finished trial (with the same repeats, settings and precision). Progress (batch, trial,
 optimiser step) goes to stderr. Each learned trial's row counts the optimiser steps whose
 estimate was not finite (``nonfinite_steps``: such a step moves nothing); the report flags
 every trial where it is above zero. The report (``harness.learn_report``) regenerates every table
@@ -105,6 +105,9 @@ class Args:
     """Seed of repeat 0."""
     out: str = "reports"
     """Folder for the CSV, report and figure (and .cache/learn/ checkpoints)."""
+    checkpoints: str = ""
+    """Folder for the between-trial checkpoints (empty: {out}/.cache/learn). A folder under
+    version control carries an unfinished batch to another machine."""
     x64: bool = True
     """Compute in float64 (--no-x64: float32)."""
     rollout_float32: bool = False
@@ -184,7 +187,7 @@ def checkpoint_path(args: Args, method: str, repeats: list[int]) -> str:
     task_hash = hashlib.sha256(tasks.describe(args.make_task()).encode()).hexdigest()[:8]
     name = (f"{os.path.basename(args.stem)}_{method}_{args.settings_name(method)}_task{task_hash}_{precision}"
             f"_seeds{seeds}.pkl")
-    return os.path.join(args.out, ".cache", "learn", name)
+    return os.path.join(args.checkpoints or os.path.join(args.out, ".cache", "learn"), name)
 
 
 def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:

@@ -46,8 +46,9 @@ def test_learning_runs_end_to_end_and_an_interrupted_run_resumes(tmp_path, monke
 
 
 def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_path, monkeypatch, capsys):
-    """The batch's state is saved after every trial; a rerun continues from it and gives the
-    rows of an uninterrupted run (the same computation: equal to round-off), then removes it."""
+    """The batch's state is saved after every trial (here in a ``--checkpoints`` folder, as a
+    run carried to another machine would); a rerun continues from it and gives the rows of an
+    uninterrupted run (the same computation: equal to round-off), then removes it."""
     argv = TINY + ["--repeats", "2", "--learned-trials", "2", "--methods", "tp"]  # the last value of a flag wins
     learn.main(argv + ["--out", str(tmp_path / "whole")])
     whole = pd.read_csv(tmp_path / "whole" / "learn_cartpole_angle_k1_quick.csv")
@@ -61,10 +62,12 @@ def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_p
         return real(*args, **kwargs)
 
     monkeypatch.setattr(learn, "evaluate_policy", cut_at_the_second_evaluation)
-    out = tmp_path / "cut"
+    out, carried = tmp_path / "cut", tmp_path / "carried"
+    argv += ["--checkpoints", str(carried)]
     with pytest.raises(KeyboardInterrupt):
         learn.main(argv + ["--out", str(out)])
     assert not (out / "learn_cartpole_angle_k1_quick.csv").exists()
+    assert len(list(carried.iterdir())) == 1 and not (out / ".cache" / "learn").exists()
     monkeypatch.setattr(learn, "evaluate_policy", real)
     capsys.readouterr()
     learn.main(argv + ["--out", str(out)])
@@ -73,7 +76,7 @@ def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_p
     resumed = pd.read_csv(out / "learn_cartpole_angle_k1_quick.csv")
     columns = ["repeat", "trial", "learned", "trial_return", "eval_mean", "data_points"]
     pd.testing.assert_frame_equal(resumed[columns], whole[columns], check_exact=False, rtol=1e-9)
-    assert not list((out / ".cache" / "learn").iterdir())  # the checkpoint is gone with its rows in the table
+    assert not list(carried.iterdir())  # the checkpoint is gone with its rows in the table
 
 
 def test_non_finite_optimiser_steps_are_counted_in_the_table_and_flagged_in_the_report(tmp_path, monkeypatch):
