@@ -1,14 +1,18 @@
 """Learned model versus true dynamics: gradient variance and direction, per estimator.
 
     python -m harness.compare --task cartpole [--models gp,jax] [--estimators rp,lr,biw_lr,tp]
-        [--particles 10,30,100,300] [--repeats 20] [--reference-particles 1000]
-        [--reference-repeats 30] [--out DIR]
+        [--particles 10,30,100,300] [--repeats 20] [--reference-estimator lr|rp|...|fd]
+        [--reference-fd-step 0.01] [--reference-particles 1000] [--reference-repeats 30] [--out DIR]
 
 At theta0 of the scenario (``harness.scenario``; the same theta0 and task for every model):
 
 - the reference: the true gradient, estimated by ``reference_repeats`` independent estimates of
   ``reference_estimator`` with ``reference_particles`` particles on the true dynamics
-  (``reference_model``); its own relative standard error is reported;
+  (``reference_model``); its own relative standard error is reported. ``fd`` instead of an
+  estimator: central finite differences of J with common random numbers (``fd_gradient``),
+  whose variance stays bounded where the dynamics are chaotic and RP's per-particle gradients
+  have heavy tails (the unicycle); the report then also gives the same reference at half the
+  step, to show the step's bias;
 - for each model, estimator and particle count, ``repeats`` independent estimates g_r: their
   variance (trace of the covariance) and, against the reference g*, the cosine similarity
   ``g_r . g* / (|g_r| |g*|)`` and the relative error ``|g_r - g*| / |g*|``, each as a mean over
@@ -22,11 +26,15 @@ Rows go to ``compare_{task}.csv`` as each cell finishes (a rerun resumes); the r
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import sys
+from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 import pandas as pd
 
 import estimators
@@ -54,7 +62,9 @@ class Args(scenario_lib.ExperimentArgs):
     reference_model: str = "jax"
     """True dynamics of the reference gradient (jax or mjx)."""
     reference_estimator: str = "lr"
-    """Estimator of the reference gradient."""
+    """Estimator of the reference gradient, or fd: central finite differences of J with common random numbers."""
+    reference_fd_step: float = 0.01
+    """Step h of the fd reference, along each coordinate of theta."""
     reference_particles: int = 1000
     """Particles per reference estimate."""
     reference_repeats: int = 30
@@ -66,14 +76,17 @@ class Args(scenario_lib.ExperimentArgs):
             scenario_lib.check_model(model)
         if self.reference_model == "gp":
             raise ValueError("the reference must be a true-dynamics model (jax or mjx), not gp")
-        scenario_lib.check_estimators(str_list(self.estimators) + [self.reference_estimator])
+        references = [self.reference_estimator] if self.reference_estimator != "fd" else []
+        scenario_lib.check_estimators(str_list(self.estimators) + references)
+        if self.reference_fd_step <= 0:
+            raise ValueError(f"reference_fd_step must be > 0; got {self.reference_fd_step}")
         if self.repeats < 2 or self.reference_repeats < 2:
             raise ValueError("repeats and reference_repeats must be >= 2")
 
     @property
     def reference_name(self) -> str:
-        return (f"{self.reference_model}-{self.reference_estimator}-P{self.reference_particles}"
-                f"-R{self.reference_repeats}")
+        method = self.reference_estimator + (f"{self.reference_fd_step:g}" if self.reference_estimator == "fd" else "")
+        return f"{self.reference_model}-{method}-P{self.reference_particles}-R{self.reference_repeats}"
 
 
 def alignment(grads: np.ndarray, reference: np.ndarray) -> dict:
@@ -93,32 +106,73 @@ def alignment(grads: np.ndarray, reference: np.ndarray) -> dict:
     }
 
 
-def reference_gradient(args: Args, theta0, content: str, key: jax.Array) -> tuple[np.ndarray, float]:
-    """The reference gradient (n,) and its relative standard error, cached under ``out`` by the
-    scenario's content hash."""
+@functools.partial(jax.jit, static_argnums=(3, 4))
+def fd_gradient(problem, theta, key: jax.Array, num_particles: int, step: float) -> jax.Array:
+    """Central finite differences of the sampled objective with common random numbers, (n,):
+    ``g_i = (J(theta + h e_i) - J(theta - h e_i)) / 2h``, J the mean return of ``num_particles``
+    particles drawn with ``key`` (the same draws on both sides), ``e_i`` the i-th coordinate of
+    theta flattened. An estimate of the gradient of J smoothed over +-h: its bias is O(h^2), and
+    its variance is bounded by that of the returns over (2h)^2 however chaotic the dynamics."""
+    flat, unflatten = ravel_pytree(theta)
+
+    def objective(x):
+        return scenario_lib.particle_returns(problem, unflatten(x), key, num_particles).mean()
+
+    basis = step * jnp.eye(flat.size, dtype=flat.dtype)
+    return jax.lax.map(lambda e: (objective(flat + e) - objective(flat - e)) / (2 * step), basis)
+
+
+class Reference(NamedTuple):
+    """The reference gradient g* (n,), its relative standard error |standard error| / |g*|, and
+    for the fd reference the cosine and relative difference |g*_{h/2} - g*| / |g*| of the same
+    reference at half the step (NaN otherwise)."""
+
+    grad: np.ndarray
+    rse: float
+    half_step_cosine: float = np.nan
+    half_step_difference: float = np.nan
+
+
+def mean_and_rse(grads: np.ndarray) -> tuple[np.ndarray, float]:
+    """The mean of independent estimates (R, n) and its relative standard error."""
+    mean = grads.mean(axis=0)
+    return mean, float(np.sqrt(np.sum(grads.var(axis=0, ddof=1)) / len(grads)) / np.linalg.norm(mean))
+
+
+def reference_gradient(args: Args, theta0, content: str, key: jax.Array) -> Reference:
+    """The reference gradient, cached under ``out`` by the scenario's content hash."""
     path = os.path.join(args.out, ".cache", f"reference_{args.task}_{content}_{args.reference_name}.npz")
     if not os.path.exists(path):
-        print(f"reference: {args.reference_repeats} x {args.reference_estimator} with {args.reference_particles} "
-              f"particles on the {args.reference_model} dynamics", file=sys.stderr, flush=True)
+        print(f"reference: {args.reference_repeats} x {args.reference_name.split('-')[1]} with "
+              f"{args.reference_particles} particles on the {args.reference_model} dynamics",
+              file=sys.stderr, flush=True)
         where = scenario_lib.setting(args, args.reference_model)
-        rep = repeated_estimates(estimators.make(args.reference_estimator), where.problem, theta0,
-                                 args.reference_particles, args.reference_repeats, key)
+        if args.reference_estimator == "fd":
+            keys = [jax.random.fold_in(key, r) for r in range(args.reference_repeats)]
+            saved = {name: np.stack([np.asarray(fd_gradient(where.problem, theta0, k, args.reference_particles, h))
+                                     for k in keys])
+                     for name, h in (("grads", args.reference_fd_step), ("half_step", args.reference_fd_step / 2))}
+        else:
+            saved = dict(grads=repeated_estimates(estimators.make(args.reference_estimator), where.problem, theta0,
+                                                  args.reference_particles, args.reference_repeats, key).grads)
         os.makedirs(os.path.dirname(path), exist_ok=True)
-        np.savez(path, grads=rep.grads)
-    grads = np.load(path)["grads"]
-    mean = grads.mean(axis=0)
-    standard_error = np.sqrt(np.sum(grads.var(axis=0, ddof=1)) / len(grads))
-    return mean, float(standard_error / np.linalg.norm(mean))
+        np.savez(path, **saved)
+    saved = np.load(path)
+    grad, rse = mean_and_rse(saved["grads"])
+    if "half_step" not in saved:
+        return Reference(grad, rse)
+    half = saved["half_step"].mean(axis=0)
+    return Reference(grad, rse, float(half @ grad / (np.linalg.norm(half) * np.linalg.norm(grad))),
+                     float(np.linalg.norm(half - grad) / np.linalg.norm(grad)))
 
 
-def run(args: Args) -> tuple[pd.DataFrame, float]:
-    """Measure every missing cell; returns this run's rows and the reference's relative
-    standard error."""
+def run(args: Args) -> tuple[pd.DataFrame, Reference]:
+    """Measure every missing cell; returns this run's rows and the reference."""
     table = ResultTable(os.path.join(args.out, f"compare_{args.task}.csv"), KEY_COLUMNS)
     seed_key = jax.random.key(args.seed)
     where = {model: scenario_lib.setting(args, model) for model in str_list(args.models)}
     theta0, content = next(iter(where.values())).theta0, next(iter(where.values())).content
-    reference, reference_rse = reference_gradient(args, theta0, content, jax.random.fold_in(seed_key, 4))
+    reference = reference_gradient(args, theta0, content, jax.random.fold_in(seed_key, 4))
     cells = [(m, e, p) for m in str_list(args.models) for e in str_list(args.estimators)
              for p in int_list(args.particles)]
     for index, (model, name, num_particles) in enumerate(cells):
@@ -128,7 +182,7 @@ def run(args: Args) -> tuple[pd.DataFrame, float]:
             continue
         rep = repeated_estimates(estimators.make(name), where[model].problem, theta0, num_particles, args.repeats,
                                  jax.random.fold_in(seed_key, 2))
-        stats = {**cell_statistics(rep), **alignment(rep.grads, reference)}
+        stats = {**cell_statistics(rep), **alignment(rep.grads, reference.grad)}
         table.append({**row_key, **stats, "scenario_settings": args.scenario_name})
         jax.clear_caches()  # no later cell reuses its programs (README: memory mappings)
         print(f"[{index + 1}/{len(cells)}] {model:3s} {name:7s} P={num_particles:5d}: variance {stats['variance']:.3e}, "
@@ -138,7 +192,7 @@ def run(args: Args) -> tuple[pd.DataFrame, float]:
     rows = table.read()
     keep = (rows.seed == args.seed) & (rows.repeats == args.repeats) & (rows.scenario == content) & (
         rows.reference == args.reference_name)
-    return rows[keep], reference_rse
+    return rows[keep], reference
 
 
 def findings(args: Args, rows: pd.DataFrame) -> list[str]:
@@ -169,7 +223,21 @@ def findings(args: Args, rows: pd.DataFrame) -> list[str]:
     return lines
 
 
-def write_report(args: Args, rows: pd.DataFrame, reference_rse: float, objectives: list[str]) -> None:
+def reference_lines(args: Args, reference: Reference) -> list[str]:
+    """The report's description of the reference and its quality."""
+    what = (f"central finite differences of J with common random numbers (step h = {args.reference_fd_step:g} along "
+            f"each coordinate of theta), each from" if args.reference_estimator == "fd" else
+            f"{args.reference_estimator} estimates with")
+    lines = [f"- Reference g*: the mean of {args.reference_repeats} {what} {args.reference_particles} particles on the "
+             f"{args.reference_model} dynamics; its relative standard error (|standard error| / |g*|) is "
+             f"{reference.rse:.3f}, which bounds how close to 1 a cosine can be measured."]
+    if np.isfinite(reference.half_step_cosine):
+        lines.append(f"- The same reference at h / 2 (the same draws): cosine with g* "
+                     f"{reference.half_step_cosine:.3f}, relative difference {reference.half_step_difference:.3f} (the step's bias, plus the noise).")
+    return lines
+
+
+def write_report(args: Args, rows: pd.DataFrame, reference: Reference, objectives: list[str]) -> None:
     """The markdown: settings, the reference's quality, the table and what it says."""
     models = str_list(args.models)
     wide = rows.pivot_table(index=["estimator", "particles"], columns="model",
@@ -196,15 +264,15 @@ def write_report(args: Args, rows: pd.DataFrame, reference_rse: float, objective
         "",
         f"Command: `python -m harness.compare --task {args.task} --models {args.models} --estimators {args.estimators} "
         f"--particles {args.particles} --repeats {args.repeats} --reference-model {args.reference_model} "
-        f"--reference-estimator {args.reference_estimator} --reference-particles {args.reference_particles} "
+        f"--reference-estimator {args.reference_estimator} "
+        + (f"--reference-fd-step {args.reference_fd_step:g} " if args.reference_estimator == "fd" else "")
+        + f"--reference-particles {args.reference_particles} "
         f"--reference-repeats {args.reference_repeats} --seed {args.seed} {args.scenario_flags()}`",
         "",
         *scenario_lib.model_labels(args.task, str_list(args.models) + [args.reference_model]),
         args.scenario_line(rows, "; every model is evaluated at its theta0"),
         *objectives,
-        f"- Reference g*: the mean of {args.reference_repeats} {args.reference_estimator} estimates with "
-        f"{args.reference_particles} particles on the {args.reference_model} dynamics; its relative standard error "
-        f"(|standard error| / |g*|) is {reference_rse:.3f}, which bounds how close to 1 a cosine can be measured.",
+        *reference_lines(args, reference),
         f"- Per cell: {args.repeats} independent estimates; variance = trace of their covariance; cosine and relative "
         "error are means over the estimates with 95 % intervals; 'cosine of mean' is that of their average; "
         "'non-finite': estimates with a NaN or infinite component, left out of every statistic.",
@@ -220,10 +288,10 @@ def write_report(args: Args, rows: pd.DataFrame, reference_rse: float, objective
 def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
-    rows, reference_rse = run(args)
+    rows, reference = run(args)
     objectives = [scenario_lib.objective_line(scenario_lib.setting(args, model), model, args.seed)
                   for model in str_list(args.models)]
-    write_report(args, rows, reference_rse, objectives)
+    write_report(args, rows, reference, objectives)
     print(f"wrote {os.path.join(args.out, f'compare_{args.task}')}.{{csv,md}}", file=sys.stderr)
 
 

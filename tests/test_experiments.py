@@ -191,17 +191,36 @@ def test_landscape_slices_default_to_the_tasks_dimensions():
     assert landscape.Args(task="unicycle", slice_dims="xc,yc").slice_names == ["xc", "yc"]
 
 
+def test_finite_difference_reference_is_the_derivative_of_the_same_sampled_objective(tmp_path):
+    """With common random numbers, fd_gradient differentiates the sampled J (the mean return of
+    the particles that one key draws): at a small step it equals jax.grad of that function to
+    O(h^2), coordinate by coordinate, on a smooth model (the GP)."""
+    import jax
+
+    from harness import scenario as scenario_lib
+    from harness.compare import fd_gradient
+    from harness.variance import flatten
+
+    args = scenario_lib.ExperimentArgs(scenario_estimator="tp", scenario_trials=1, scenario_steps=3,
+                                       scenario_particles=5, out=str(tmp_path))
+    where, key = scenario_lib.setting(args, "gp"), jax.random.key(3)  # float64 (conftest)
+    exact = flatten(jax.grad(lambda t: scenario_lib.particle_returns(where.problem, t, key, 16).mean())(where.theta0))
+    fd = fd_gradient(where.problem, where.theta0, key, 16, 1e-4)
+    np.testing.assert_allclose(fd, exact, rtol=1e-5, atol=1e-7 * np.abs(exact).max())
+
+
 def test_compare_runs_end_to_end(tmp_path):
     from harness import compare
 
     compare.main(["--particles", "4", "--repeats", "2", "--estimators", "lr,tp", "--reference-particles", "8",
-                  "--reference-repeats", "2", "--scenario-estimator", "tp", "--scenario-trials", "1",
-                  "--scenario-steps", "3",
+                  "--reference-repeats", "2", "--reference-estimator", "fd", "--scenario-estimator", "tp",
+                  "--scenario-trials", "1", "--scenario-steps", "3",
                   "--scenario-particles", "5", "--out", str(tmp_path)])
     rows = pd.read_csv(tmp_path / "compare_cartpole.csv")
-    assert set(rows.model) == {"gp", "jax"} and len(rows) == 4
+    assert set(rows.model) == {"gp", "jax"} and len(rows) == 4 and set(rows.reference) == {"jax-fd0.01-P8-R2"}
     assert rows.cosine.between(-1, 1).all() and (rows.variance > 0).all()
-    assert "cosine gp" in (tmp_path / "compare_cartpole.md").read_text()
+    report = (tmp_path / "compare_cartpole.md").read_text()
+    assert "cosine gp" in report and "The same reference at h / 2" in report
     with pytest.raises(ValueError, match="reference must be a true-dynamics model"):
         compare.main(["--reference-model", "gp"])
 
