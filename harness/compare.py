@@ -2,7 +2,7 @@
 
     python -m harness.compare --task cartpole [--models gp,jax] [--estimators rp,lr,biw_lr,tp]
         [--particles 10,30,100,300] [--repeats 20] [--reference-estimator lr|rp|...|fd]
-        [--reference-fd-step 0.01] [--reference-particles 1000] [--reference-repeats 30] [--out DIR]
+        [--reference-fd-step 0.01] [--reference-particles 1000] [--reference-repeats 100] [--out DIR]
 
 At theta0 of the scenario (``harness.scenario``; the same theta0 and task for every model):
 
@@ -67,8 +67,9 @@ class Args(scenario_lib.ExperimentArgs):
     """Step h of the fd reference, along each coordinate of theta."""
     reference_particles: int = 1000
     """Particles per reference estimate."""
-    reference_repeats: int = 30
-    """Reference estimates averaged into the reference gradient."""
+    reference_repeats: int = 100
+    """Reference estimates averaged into the reference gradient (100 LR estimates: a relative standard error
+    of 0.11 at the cart-pole scenario, where 30 gave 0.22)."""
 
     def __post_init__(self):
         super().__post_init__()

@@ -4,8 +4,15 @@ From a seed: the task's random trial(s), then ``learned_trials`` trials of the p
 (fit the GP to all data, optimise the policy on it with ``estimator`` for
 ``optimiser_steps`` steps of the paper's optimiser, run the policy once on the real system,
 add the data); finally the GP is refitted to all data. The result is theta0 (the policy after
-the last trial) and the GP posterior. The cache file's name is a hash of the settings and of
-the task's options.
+the last trial) and the GP posterior. The cache file's name is a hash of the settings, the
+task's options and the code that builds it.
+
+A build is not reproducible across machines: the trials' optimisers amplify round-off, and
+XLA's round-off depends on its threading (the same settings gave three different theta0 on one
+machine under three thread settings). So a scenario the reports quote is **pinned**: kept in
+the repository's ``scenarios/`` (``--pin-scenario``), keyed by the settings and the task's
+options alone, and used, whatever the code or machine, unless ``--rebuild-scenario``. Every
+report prints its content hash and where it came from.
 
 Every gradient experiment (variance, landscape, compare) starts from the same ``Setting``: the
 scenario's theta0, a fixed random unit direction d in parameter space (from the seed), and the
@@ -15,6 +22,7 @@ problem under the chosen model (the scenario's GP, or the true dynamics in JAX o
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import hashlib
 import json
 import os
@@ -116,26 +124,65 @@ def code_digest() -> str:
     return digest.hexdigest()[:12]
 
 
+PINNED_DIR = os.path.join(ROOT, "scenarios")
+"""The repository's pinned scenarios (see the module docstring)."""
+
+
+def settings_file(args: ScenarioArgs, folder: str, with_code: bool) -> str:
+    """``folder/scenario_{task}_{hash}.pkl``, the hash of ``args``, the precision, every option of
+    the task (``tasks.describe``: a change of a task's default, e.g. its cost, makes a new one)
+    and, ``with_code``, the code that builds it (``code_digest``)."""
+    settings = {**dataclasses.asdict(args), "x64": jax.config.jax_enable_x64,
+                "task_options": tasks.describe(tasks.make(args.task))}
+    if with_code:
+        settings["code"] = code_digest()
+    digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:12]
+    return os.path.join(folder, f"scenario_{args.task}_{digest}.pkl")
+
+
 def cache_path(args: ScenarioArgs, cache_dir: str) -> str:
-    """The cache file of ``args``: a hash of its settings, the precision, every option of the
-    task (``tasks.describe``: a change of a task's default, e.g. its cost, makes a new one) and
-    the code that builds it (``code_digest``), so that a stale scenario is never reused."""
-    settings = json.dumps({**dataclasses.asdict(args), "x64": jax.config.jax_enable_x64,
-                           "task_options": tasks.describe(tasks.make(args.task)), "code": code_digest()},
-                          sort_keys=True)
-    digest = hashlib.sha256(settings.encode()).hexdigest()[:12]
-    return os.path.join(cache_dir, f"scenario_{args.task}_{digest}.pkl")
+    """The cache file of ``args``, keyed by the code too, so that a stale build is never reused."""
+    return settings_file(args, cache_dir, with_code=True)
 
 
-def load_or_build(args: ScenarioArgs, cache_dir: str) -> Scenario:
-    """The cached scenario for ``args`` if there is one, else build and cache it."""
-    path = cache_path(args, cache_dir)
-    cached = load_pickle(path)
-    if cached is not None:
-        return jax.tree.map(jax.numpy.asarray, cached)
-    scenario = build(args)
-    save_pickle(scenario, path)
-    return scenario
+def pinned_path(args: ScenarioArgs, pinned_dir: str = PINNED_DIR) -> str:
+    """The pinned file of ``args``: keyed by the settings and task options, not the code."""
+    return settings_file(args, pinned_dir, with_code=False)
+
+
+def provenance() -> dict:
+    """How a scenario was built: the code, the library, XLA's flags, the CPUs, the date."""
+    return dict(code=code_digest(), jax=jax.__version__, xla_flags=os.environ.get("XLA_FLAGS", ""),
+                cpus=len(os.sched_getaffinity(0)), built=datetime.datetime.now(datetime.timezone.utc).isoformat(
+                    timespec="seconds"))
+
+
+def describe_provenance(saved: dict) -> str:
+    how = saved["provenance"]
+    return (f"built {how['built']} by code {how['code']}, jax {how['jax']}, {how['cpus']} CPU(s), "
+            f"XLA_FLAGS={how['xla_flags'] or '(none)'}")
+
+
+def load_or_build(args: ScenarioArgs, cache_dir: str, pinned_dir: str = PINNED_DIR, rebuild: bool = False,
+                  pin: bool = False) -> Scenario:
+    """The pinned scenario for ``args`` unless ``rebuild``; else the cached build under the
+    current code, building and caching it if there is none. ``pin``: write what is used to
+    the pinned file (replacing one there). Says on stderr which it used."""
+    pinned = pinned_path(args, pinned_dir)
+    saved = None if rebuild else load_pickle(pinned)
+    if saved is not None:
+        print(f"scenario: the pinned {pinned} ({describe_provenance(saved)}); --rebuild-scenario builds one "
+              "under the current code", file=sys.stderr, flush=True)
+    else:
+        path = cache_path(args, cache_dir)
+        saved = load_pickle(path)
+        if saved is None:
+            saved = dict(scenario=build(args), provenance=provenance())
+            save_pickle(saved, path)
+        if pin:
+            save_pickle(saved, pinned)
+            print(f"scenario: pinned to {pinned} ({describe_provenance(saved)})", file=sys.stderr, flush=True)
+    return jax.tree.map(jax.numpy.asarray, saved["scenario"])
 
 
 FLAT_SCENARIO_FLAGS = "--scenario-estimator tp --scenario-trials 2 --scenario-steps 200 --scenario-particles 100"
@@ -168,6 +215,14 @@ class ExperimentArgs:
     """Particles per gradient estimate while building the scenario (particle estimators only)."""
     scenario_estimator: str = "pilco"
     """Estimator (or pilco) that optimises the policy while building the scenario."""
+    rebuild_scenario: bool = False
+    """Build the scenario under the current code (cached under out/.cache) instead of using the
+    pinned one in scenarios/."""
+    pin_scenario: bool = False
+    """Pin the scenario used: write it to scenarios/, where every later run, on any machine,
+    finds it (commit the file)."""
+    scenarios_dir: str = PINNED_DIR
+    """Folder of the pinned scenarios."""
 
     def __post_init__(self):
         tasks.make(self.task)  # fails with the list of tasks
@@ -185,14 +240,20 @@ class ExperimentArgs:
         return os.path.basename(cache_path(self.scenario, ""))
 
     def scenario_line(self, rows, note: str = "") -> str:
-        """The report's scenario line: how it was built and the content hash of the rows shown."""
+        """The report's scenario line: how it was built, where it came from (pinned or built
+        under the current code) and the content hash of the rows shown."""
         hashes = ", ".join(sorted(map(str, rows.scenario.unique())))
-        return (f"- Scenario: {self.scenario.describe()}{note}. Content hash {hashes} (theta0, the direction and "
-                "the GP posterior, at float32 precision): every row shown was computed on it.")
+        pinned = pinned_path(self.scenario, self.scenarios_dir)
+        saved = None if self.rebuild_scenario else load_pickle(pinned)
+        source = (f"the pinned scenarios/{os.path.basename(pinned)}, {describe_provenance(saved)}" if saved
+                  else "built under the current code, not pinned")
+        return (f"- Scenario: {self.scenario.describe()}{note}; {source}. Content hash {hashes} (theta0, the "
+                "direction and the GP posterior, at float32 precision): every row shown was computed on it.")
 
     def scenario_flags(self) -> str:
         return (f"--scenario-trials {self.scenario_trials} --scenario-steps {self.scenario_steps} "
-                f"--scenario-particles {self.scenario_particles} --scenario-estimator {self.scenario_estimator}")
+                f"--scenario-particles {self.scenario_particles} --scenario-estimator {self.scenario_estimator}"
+                + (" --rebuild-scenario" if self.rebuild_scenario else ""))
 
 
 class Setting(NamedTuple):
@@ -286,7 +347,8 @@ def content_hash(theta0, direction, posterior: gp.GPPosterior) -> str:
 def setting(args: ExperimentArgs, model: str) -> Setting:
     """The Setting of ``args`` under ``model``, building or loading the cached scenario under
     ``args.out``."""
-    scn = load_or_build(args.scenario, os.path.join(args.out, ".cache"))
+    scn = load_or_build(args.scenario, os.path.join(args.out, ".cache"), args.scenarios_dir, args.rebuild_scenario,
+                        args.pin_scenario)
     direction = unit_direction(scn.theta, jax.random.fold_in(jax.random.key(args.seed), 1))
     return Setting(model_problem(args.task, model, scn), scn.theta, direction, scn,
                    content_hash(scn.theta, direction, scn.posterior))

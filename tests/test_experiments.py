@@ -50,13 +50,38 @@ def test_rows_of_a_changed_theta0_are_never_reused(tmp_path, capsys):
     argv = TINY + ["--estimators", "rp", "--particles", "5", "--delta-theta", "0", "--out", out]
     variance.main(argv)
     [cached] = (tmp_path / ".cache").glob("scenario_cartpole_*.pkl")
-    scenario = load_pickle(str(cached))
-    save_pickle(scenario._replace(theta=jax.tree.map(lambda t: t + 1e-3, scenario.theta)), str(cached))
+    saved = load_pickle(str(cached))
+    scenario = saved["scenario"]
+    save_pickle({**saved, "scenario": scenario._replace(theta=jax.tree.map(lambda t: t + 1e-3, scenario.theta))},
+                str(cached))
     capsys.readouterr()
     variance.main(argv)
     assert "computed 1 cells, reused 0" in capsys.readouterr().err
     rows = pd.read_csv(tmp_path / "variance_cartpole_gp.csv")
     assert len(rows) == 2 and rows.scenario.nunique() == 2 and rows.scenario_settings.nunique() == 1
+
+
+def test_a_pinned_scenario_is_used_whatever_the_code_and_rebuild_ignores_it(tmp_path, capsys, monkeypatch):
+    """Pinned once, the scenario is reused after a code change (every cell found done, no
+    build); --rebuild-scenario builds under the current code instead."""
+    from harness import scenario as scenario_lib
+    from harness.records import load_pickle
+
+    out, pinned = str(tmp_path / "out"), str(tmp_path / "pinned")
+    argv = TINY + ["--estimators", "rp", "--particles", "5", "--delta-theta", "0", "--out", out,
+                   "--scenarios-dir", pinned]
+    variance.main(argv + ["--pin-scenario"])
+    [pinned_file] = (tmp_path / "pinned").glob("scenario_cartpole_*.pkl")
+    assert "code" in load_pickle(str(pinned_file))["provenance"]
+    monkeypatch.setattr(scenario_lib, "code_digest", lambda: "changed-code")  # a new cache key
+    capsys.readouterr()
+    variance.main(argv)
+    err = capsys.readouterr().err
+    assert "the pinned" in err and "computed 0 cells, reused 1" in err and "scenario: trial" not in err
+    assert "the pinned scenarios/" in open(os.path.join(out, "variance_cartpole_gp.md")).read()
+    variance.main(argv + ["--rebuild-scenario"])  # the code changed: no cached build under it
+    err = capsys.readouterr().err
+    assert "the pinned" not in err and "scenario: trial 1 done" in err
 
 
 @pytest.mark.parametrize("argv, message", [
