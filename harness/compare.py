@@ -149,9 +149,13 @@ def reference_gradient(args: Args, theta0, content: str, key: jax.Array) -> Refe
               file=sys.stderr, flush=True)
         where = scenario_lib.setting(args, args.reference_model)
         if args.reference_estimator == "fd":
-            keys = [jax.random.fold_in(key, r) for r in range(args.reference_repeats)]
-            saved = {name: np.stack([np.asarray(fd_gradient(where.problem, theta0, k, args.reference_particles, h))
-                                     for k in keys])
+            def fd_estimate(r: int, h: float) -> np.ndarray:
+                print(f"reference: fd estimate {r + 1}/{args.reference_repeats} (h = {h:g})", file=sys.stderr,
+                      flush=True)
+                return np.asarray(fd_gradient(where.problem, theta0, jax.random.fold_in(key, r),
+                                              args.reference_particles, h))
+
+            saved = {name: np.stack([fd_estimate(r, h) for r in range(args.reference_repeats)])
                      for name, h in (("grads", args.reference_fd_step), ("half_step", args.reference_fd_step / 2))}
         else:
             saved = dict(grads=repeated_estimates(estimators.make(args.reference_estimator), where.problem, theta0,
