@@ -8,8 +8,9 @@ the last trial) and the GP posterior. The cache file's name is a hash of the set
 task's options and the code that builds it.
 
 A build is not reproducible across machines: the trials' optimisers amplify round-off, and
-XLA's round-off depends on its threading (the same settings gave three different theta0 on one
-machine under three thread settings). So a scenario the reports quote is **pinned**: kept in
+XLA's round-off depends on its threading and on the machine (the same settings and code gave
+different theta0 on two machines of one kind with the same flags, and on one machine under two
+XLA thread settings). So a scenario the reports quote is **pinned**: kept in
 the repository's ``scenarios/`` (``--pin-scenario``), keyed by the settings and the task's
 options alone, and used, whatever the code or machine, unless ``--rebuild-scenario``. Every
 report prints its content hash and where it came from.
@@ -158,6 +159,7 @@ def provenance() -> dict:
 
 
 def describe_provenance(saved: dict) -> str:
+    """``provenance()`` of a saved scenario, as a phrase for reports and logs."""
     how = saved["provenance"]
     return (f"built {how['built']} by code {how['code']}, jax {how['jax']}, {how['cpus']} CPU(s), "
             f"XLA_FLAGS={how['xla_flags'] or '(none)'}")
@@ -245,7 +247,8 @@ class ExperimentArgs:
         hashes = ", ".join(sorted(map(str, rows.scenario.unique())))
         pinned = pinned_path(self.scenario, self.scenarios_dir)
         saved = None if self.rebuild_scenario else load_pickle(pinned)
-        source = (f"the pinned scenarios/{os.path.basename(pinned)}, {describe_provenance(saved)}" if saved
+        shown = os.path.relpath(pinned, ROOT) if pinned.startswith(ROOT + os.sep) else pinned
+        source = (f"the pinned {shown}, {describe_provenance(saved)}" if saved
                   else "built under the current code, not pinned")
         return (f"- Scenario: {self.scenario.describe()}{note}; {source}. Content hash {hashes} (theta0, the "
                 "direction and the GP posterior, at float32 precision): every row shown was computed on it.")

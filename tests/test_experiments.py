@@ -78,7 +78,7 @@ def test_a_pinned_scenario_is_used_whatever_the_code_and_rebuild_ignores_it(tmp_
     variance.main(argv)
     err = capsys.readouterr().err
     assert "the pinned" in err and "computed 0 cells, reused 1" in err and "scenario: trial" not in err
-    assert "the pinned scenarios/" in open(os.path.join(out, "variance_cartpole_gp.md")).read()
+    assert f"the pinned {pinned_file}" in open(os.path.join(out, "variance_cartpole_gp.md")).read()
     variance.main(argv + ["--rebuild-scenario"])  # the code changed: no cached build under it
     err = capsys.readouterr().err
     assert "the pinned" not in err and "scenario: trial 1 done" in err
