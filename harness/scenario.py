@@ -165,13 +165,19 @@ def describe_provenance(saved: dict) -> str:
             f"XLA_FLAGS={how['xla_flags'] or '(none)'}")
 
 
+def load_pinned(args: ScenarioArgs, pinned_dir: str = PINNED_DIR, rebuild: bool = False) -> dict | None:
+    """The pinned file's content (``scenario``, ``provenance``), or None if there is none or
+    ``rebuild`` says not to use it."""
+    return None if rebuild else load_pickle(pinned_path(args, pinned_dir))
+
+
 def load_or_build(args: ScenarioArgs, cache_dir: str, pinned_dir: str = PINNED_DIR, rebuild: bool = False,
                   pin: bool = False) -> Scenario:
     """The pinned scenario for ``args`` unless ``rebuild``; else the cached build under the
     current code, building and caching it if there is none. ``pin``: write what is used to
     the pinned file (replacing one there). Says on stderr which it used."""
     pinned = pinned_path(args, pinned_dir)
-    saved = None if rebuild else load_pickle(pinned)
+    saved = load_pinned(args, pinned_dir, rebuild)
     if saved is not None:
         print(f"scenario: the pinned {pinned} ({describe_provenance(saved)}); --rebuild-scenario builds one "
               "under the current code", file=sys.stderr, flush=True)
@@ -246,7 +252,7 @@ class ExperimentArgs:
         under the current code) and the content hash of the rows shown."""
         hashes = ", ".join(sorted(map(str, rows.scenario.unique())))
         pinned = pinned_path(self.scenario, self.scenarios_dir)
-        saved = None if self.rebuild_scenario else load_pickle(pinned)
+        saved = load_pinned(self.scenario, self.scenarios_dir, self.rebuild_scenario)
         shown = os.path.relpath(pinned, ROOT) if pinned.startswith(ROOT + os.sep) else pinned
         source = (f"the pinned {shown}, {describe_provenance(saved)}" if saved
                   else "built under the current code, not pinned")
