@@ -257,8 +257,8 @@ def run(args: Args):
         if not missing:
             continue
         print(f"[batch {index + 1}/{len(batches)}] {method}, repeats {missing}", file=sys.stderr, flush=True)
-        for row in run_experiments(args, method, missing):
-            table.append({**row_key(method, row["repeat"]), **row})
+        # one write: a stop while writing cannot leave some repeats' rows, which a rerun would take as done
+        table.extend([{**row_key(method, row["repeat"]), **row} for row in run_experiments(args, method, missing)])
         os.remove(checkpoint_path(args, method, missing))  # its rows are in the table now
         jax.clear_caches()  # each trial compiled its own programs (README: memory mappings)
     rows = table.read()

@@ -51,8 +51,10 @@ PAPER = {  # PIPPS (Parmas et al. 2018), Tables 1-2: success rates over 100 repe
 
 
 def otsu_threshold(values: np.ndarray) -> float:
-    """The cut between sorted values that minimises the summed within-group variance."""
-    v = np.sort(np.asarray(values, float))
+    """The cut between sorted values that minimises the summed within-group variance; non-finite
+    values (a run whose evaluation diverged: a failure at any cut) take no part."""
+    v = np.asarray(values, float)
+    v = np.sort(v[np.isfinite(v)])
     if len(v) < 2 or v[0] == v[-1]:
         return float(v[-1]) if len(v) else np.nan
     costs = [np.var(v[:i]) * i + np.var(v[i:]) * (len(v) - i) for i in range(1, len(v))]
@@ -67,7 +69,8 @@ def wilson_interval(successes: int, n: int) -> tuple[float, float]:
     p = successes / n
     centre = (p + Z95**2 / (2 * n)) / (1 + Z95**2 / n)
     half = Z95 * np.sqrt(p * (1 - p) / n + Z95**2 / (4 * n**2)) / (1 + Z95**2 / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # exact ends where every run failed or learned (round-off would leave 0 or 1 a few ulps outside)
+    return (0.0 if successes == 0 else centre - half), (1.0 if successes == n else centre + half)
 
 
 INVALID_METHODS = {
@@ -79,21 +82,58 @@ INVALID_METHODS = {
 """Method names of rows kept for the record that measure no method of the paper, and why."""
 
 
+OPTIONS_IN_COLUMNS = ("noise_k", "cost_type")
+"""Task options that are columns of their own (``noise_k``, ``cost``): never part of a label."""
+COST_SCALE_OPTIONS = ("preset", "dt", "horizon", "angle_cost_scale")
+"""Task options that change the cost of the same trajectory: final costs under different values
+of these are not pooled for a threshold."""
+
+
 def with_labels(rows: pd.DataFrame) -> pd.DataFrame:
-    """``rows`` with a ``label`` column: the method, followed by the task options that differ
-    between the file's runs (``[angle_cost_scale=1.0,...]``) when there are several."""
-    options = rows.task_options.astype(str).map(lambda text: dict(item.split("=", 1) for item in text.split(",")))
-    names = sorted({name for opts in options for name in opts})
-    varying = [name for name in names if len({opts.get(name) for opts in options}) > 1]
-    suffix = options.map(lambda opts: " [" + ",".join(f"{n}={opts.get(n)}" for n in varying) + "]" if varying else "")
-    return rows.assign(label=rows.method + suffix)
+    """``rows`` with ``options``, the task options (other than ``OPTIONS_IN_COLUMNS``) that differ
+    between the file's runs (``" [angle_cost_scale=1.0,...]"``, "" when none do), ``label``, the
+    method followed by them, and ``scale``, those of them in ``COST_SCALE_OPTIONS``."""
+    parsed = rows.task_options.astype(str).map(lambda text: dict(item.split("=", 1) for item in text.split(",")))
+    names = sorted({name for opts in parsed for name in opts} - set(OPTIONS_IN_COLUMNS))
+    varying = [name for name in names if len({opts.get(name) for opts in parsed}) > 1]
+
+    def suffix(names):
+        return parsed.map(lambda opts: " [" + ",".join(f"{n}={opts.get(n)}" for n in names) + "]" if names else "")
+
+    options = suffix(varying)
+    return rows.assign(options=options, label=rows.method + options,
+                       scale=suffix([name for name in varying if name in COST_SCALE_OPTIONS]))
+
+
+EXPERIMENT = ["task", "cost", "noise_k", "task_options", "label", "settings", "repeat", "seed"]
+"""The columns that name one experiment (one repeat of one method under one set of settings)."""
 
 
 def final_evaluations(rows: pd.DataFrame) -> pd.DataFrame:
-    """Per experiment (task, cost, noise_k, label, repeat): the last learned trial's row."""
+    """Per experiment (``EXPERIMENT``): its last learned trial's row, whole. Experiments with
+    fewer learned trials than their settings name (``complete``) are left out."""
     learned = with_labels(rows[rows.learned.astype(bool)])
-    keys = ["task", "cost", "noise_k", "task_options", "label", "method", "settings", "repeat"]
-    return learned.sort_values("trial").groupby(keys, as_index=False).last()
+    learned = learned[complete(learned)]
+    return learned.sort_values("trial", kind="stable").drop_duplicates(EXPERIMENT, keep="last").reset_index(drop=True)
+
+
+def complete(learned: pd.DataFrame) -> pd.Series:
+    """Whether each row's experiment has as many learned trials as its ``settings`` name
+    (``learned_trialsN``; settings without that count pass): not so for a batch whose rows
+    were cut off while being written."""
+    wanted = learned.settings.astype(str).str.extract(r"learned_trials(\d+)", expand=False).astype(float)
+    trials = learned.groupby(EXPERIMENT).trial.transform("nunique")
+    return wanted.isna() | (trials >= wanted)
+
+
+def incomplete_lines(learned: pd.DataFrame) -> list[str]:
+    """A warning naming the experiments left out for too few learned trials (``complete``), if any."""
+    short = learned[~complete(learned)].groupby(["label", "settings", "repeat"]).trial.nunique()
+    if short.empty:
+        return []
+    names = "; ".join(f"{label} repeat {repeat} ({trials} trials)" for (label, _, repeat), trials in short.items())
+    return [f"**Left out: {len(short)} experiments with fewer learned trials than their settings** (rows cut off "
+            f"while written; rerun them after deleting their rows): {names}.", ""]
 
 
 def column_order(labels) -> list[str]:
@@ -122,9 +162,19 @@ def nonfinite_lines(learned: pd.DataFrame) -> list[str]:
             "their settings say:", "", flagged[columns].to_markdown(index=False)]
 
 
+THRESHOLD_KEYS = ["task", "cost", "scale"]
+"""A threshold per cost scale (``with_labels``: the ``COST_SCALE_OPTIONS`` that vary)."""
+
+
 def otsu_thresholds(final: pd.DataFrame) -> dict:
-    """Otsu's threshold of the pooled final evaluation costs per (task, cost)."""
-    return {key: otsu_threshold(group.eval_mean) for key, group in final.groupby(["task", "cost"])}
+    """Otsu's threshold of the pooled final evaluation costs per (task, cost, scale), every k and method."""
+    return {key: otsu_threshold(group.eval_mean) for key, group in final.groupby(THRESHOLD_KEYS)}
+
+
+def threshold_name(key: tuple) -> str:
+    """'task, cost' (then the options, if any) of an ``otsu_thresholds`` key."""
+    task, cost, scale = key
+    return f"{task}, {cost}{scale}"
 
 
 def inside(paper: float, low: float, high: float) -> str:
@@ -142,11 +192,12 @@ def success_rows(rows: pd.DataFrame, scale: float = 1.0) -> pd.DataFrame:
     final = final_evaluations(rows)
     thresholds = otsu_thresholds(final)
     cells = []
-    for (task, cost, k, label, method), group in final.groupby(["task", "cost", "noise_k", "label", "method"]):
-        wins, n = int((group.eval_mean < scale * thresholds[(task, cost)]).sum()), len(group)
+    for (task, cost, cut, options, k, label, method), group in final.groupby(
+            THRESHOLD_KEYS + ["options", "noise_k", "label", "method"]):
+        wins, n = int((group.eval_mean < scale * thresholds[(task, cost, cut)]).sum()), len(group)
         low, high = wilson_interval(wins, n)
         paper = PAPER.get((task, cost, float(k)), {}).get(method, np.nan)
-        cells.append(dict(task=task, cost=cost, k=float(k), label=label, method=method, options=label[len(method):],
+        cells.append(dict(task=task, cost=cost, k=float(k), label=label, method=method, options=options,
                           wins=wins, n=n, rate=wins / n, low=low, high=high, paper=paper,
                           inside=inside(paper, low, high)))
     table = pd.DataFrame(cells)
@@ -217,8 +268,8 @@ def robustness_lines(at: dict[float, pd.DataFrame], thresholds: dict) -> list[st
     scales = " / ".join(f"T x {scale:g}" for scale in SCALES)
     lines = [f"Threshold robustness: the rule stays Otsu's, fixed before the data; every rate recomputed at {scales} "
              f"(ROBUSTNESS = {ROBUSTNESS:g}), values listed in that order:", ""]
-    lines += [f"- Thresholds for {task}, {cost}: " + " / ".join(f"{scale * t:.3f}" for scale in SCALES)
-              for (task, cost), t in thresholds.items()]
+    lines += [f"- Thresholds for {threshold_name(key)}: " + " / ".join(f"{scale * t:.3f}" for scale in SCALES)
+              for key, t in thresholds.items()]
     rates = pd.concat({scale: cells.rate for scale, cells in at.items()}, axis=1)
     found = {"Rates that change (flips)": changes(rates.map("{:.2f}".format)),
              "Orderings between methods (INVALID ones left out) that change": ordering_changes(rates),
@@ -246,14 +297,26 @@ def retained_fraction_p(a_first, a_last, b_first, b_last) -> float:
     return float(2 * stats.norm.sf(abs(difference) / sd))
 
 
-def verdict(holds: bool, pvalues: dict[str, float], test: str) -> str:
-    """'holds' or 'does not hold' (the point estimates), then 'significant' where every comparison's
-    two-sided p-value (``pvalues``: comparison -> p) is below ``ALPHA``, quoting the largest."""
-    worst = max(pvalues, key=pvalues.get)
-    which = f", the largest of {len(pvalues)}: {worst}" if len(pvalues) > 1 else ""
-    sign = f"significant at {ALPHA:g}" if pvalues[worst] < ALPHA else f"not significant at {ALPHA:g}, so undecided"
-    return (f"{'holds' if holds else 'does not hold'} on the point estimates; {sign} "
-            f"({test} p = {pvalues[worst]:.3g}{which})")
+def verdict(comparisons: dict[str, tuple[float, bool]], test: str) -> str:
+    """A claim made of pairwise comparisons (``comparisons``: name -> (two-sided p-value, whether
+    its point estimates agree with the claim)): 'holds' on the point estimates where every one
+    agrees, else 'does not hold'; then 'significant' where every one agrees with p < ``ALPHA``
+    (quoting the largest p), 'refuted' where one disagrees with p < ``ALPHA`` (quoting the
+    smallest such p), else 'undecided' (quoting the largest p, or the smallest of those that
+    disagree)."""
+    against = {name: p for name, (p, agrees) in comparisons.items() if not agrees}
+    if against:
+        quoted = min(against, key=against.get)
+        p, pool = against[quoted], f"of {len(against)} against the claim"
+    else:
+        quoted = max(comparisons, key=lambda name: comparisons[name][0])
+        p, pool = comparisons[quoted][0], f"of {len(comparisons)}"
+    which = f", the {'smallest' if against else 'largest'} {pool}: {quoted}" if len(comparisons) > 1 else ""
+    if p < ALPHA:
+        sign = f"{'refuted' if against else 'significant'} at {ALPHA:g}"
+    else:
+        sign = f"not significant at {ALPHA:g}, so undecided"
+    return f"{'does not hold' if against else 'holds'} on the point estimates; {sign} ({test} p = {p:.3g}{which})"
 
 
 def rate_text(row) -> str:
@@ -275,7 +338,7 @@ def claim_tp_not_below_pilco(group: pd.DataFrame) -> str:
         return absent + " at k = 1"
     tp, pilco = cell.loc["tp"], cell.loc["pilco"]
     return f"{rate_text(tp)} vs {rate_text(pilco)}: " + verdict(
-        tp.rate >= pilco.rate, {"TP vs PILCO": fisher_p(tp, pilco)}, "two-sided Fisher exact")
+        {"TP vs PILCO": (fisher_p(tp, pilco), tp.rate >= pilco.rate)}, "two-sided Fisher exact")
 
 
 def needs_ks(task: str, cost: str, k: float) -> str:
@@ -299,21 +362,24 @@ def claim_lr_tp_degrade_least(group: pd.DataFrame) -> str:
     if absent := missing(both, ["lr", "tp"]):
         return f"{absent} at both k = {ks[0]:g} and k = {ks[-1]:g}"
     others = [m for m in PAPER_METHODS if m not in ("lr", "tp") and m in both]
-    if not others:
-        return f"not measured (no other method of the paper at both k = {ks[0]:g} and k = {ks[-1]:g})"
     drops = {m: relative_drop(first.loc[m].rate, last.loc[m].rate) for m in ["lr", "tp", *others]}
-    pvalues = {f"{a.upper()} vs {b.upper()}": retained_fraction_p(first.loc[a], last.loc[a], first.loc[b],
-                                                                  last.loc[b])
-               for a in ("lr", "tp") for b in others}
-    return (f"relative drop in rate (1 - rate at k = {ks[-1]:g} / rate at k = {ks[0]:g}): "
-            + ", ".join(f"{m.upper()} {drop:.2f}" for m, drop in drops.items()) + ": "
-            + verdict(max(drops["lr"], drops["tp"]) <= min(drops[m] for m in others), pvalues,
-                      "two-sided Wald test of equal log ratios, Agresti-Caffo adjusted,"))
+    listed = ", ".join(f"{m.upper()} {'-' if np.isnan(drop) else f'{drop:.2f}'}" for m, drop in drops.items())
+    dash = "; -: no success to lose" if any(np.isnan(drop) for drop in drops.values()) else ""
+    header = f"relative drop in rate (1 - rate at k = {ks[-1]:g} / rate at k = {ks[0]:g}{dash}): {listed}"
+    if nothing := [m.upper() for m in ("lr", "tp") if np.isnan(drops[m])]:
+        return f"{header}: undecided ({' and '.join(nothing)} had no success at k = {ks[0]:g})"
+    others = [m for m in others if not np.isnan(drops[m])]
+    if not others:
+        return f"{header}: not measured (no other method of the paper with a success at k = {ks[0]:g})"
+    comparisons = {f"{a.upper()} vs {b.upper()}": (retained_fraction_p(first.loc[a], last.loc[a], first.loc[b],
+                                                                       last.loc[b]), drops[a] <= drops[b])
+                   for a in ("lr", "tp") for b in others}
+    return f"{header}: " + verdict(comparisons, "two-sided Wald test of equal log ratios, Agresti-Caffo adjusted,")
 
 
 def relative_drop(first: float, last: float) -> float:
-    """``1 - last / first``: the fraction of its rate a method loses (0 where it had none to lose)."""
-    return 1 - last / first if first > 0 else 0.0
+    """``1 - last / first``: the fraction of its rate a method loses (NaN where it had none to lose)."""
+    return 1 - last / first if first > 0 else np.nan
 
 
 def claim_rp_fs_worst(cell: pd.DataFrame) -> str:
@@ -326,9 +392,10 @@ def claim_rp_fs_worst(cell: pd.DataFrame) -> str:
     if not others:
         return "not measured (no other method of the paper)"
     rp_fs, lowest = cell.loc["rp_fs"], cell.loc[others].rate.idxmin()
-    pvalues = {f"RP_FS vs {m.upper()}": fisher_p(rp_fs, cell.loc[m]) for m in others}
+    comparisons = {f"RP_FS vs {m.upper()}": (fisher_p(rp_fs, cell.loc[m]), rp_fs.rate <= cell.loc[m].rate)
+                   for m in others}
     return f"{rate_text(rp_fs)} vs the lowest other, {rate_text(cell.loc[lowest])}: " + verdict(
-        rp_fs.rate <= cell.loc[lowest].rate, pvalues, "two-sided Fisher exact")
+        comparisons, "two-sided Fisher exact")
 
 
 def ordering_lines(success: pd.DataFrame) -> list[str]:
@@ -352,13 +419,15 @@ def compute_hours(rows: pd.DataFrame) -> pd.DataFrame:
     repeat's row of a trial the same ``seconds``: the wall time since the batch began (carried
     over a resume; the time between an interruption and its rerun is not in it). So a batch's
     time is its last trial's ``seconds``, repeated on each of its repeats' rows: summing rows
-    would count it once per trial and repeat. A batch is recognised by that shared clock (its
-    repeats' largest ``seconds`` are equal; repeats of different batches are not), and each
-    batch's time is counted once. Hours per repeat = hours / repeats: the repeats of a batch share
-    its time. Batches run one after another within a run; runs in parallel processes add up."""
-    keys = ["task", "cost", "noise_k", "task_options", "label", "settings"]
-    experiments = with_labels(rows).groupby(keys + ["repeat"], as_index=False).seconds.max()
-    batches = experiments.drop_duplicates(keys + ["seconds"])
+    would count it once per trial and repeat. A batch is recognised by the clock of its first
+    trial, the same on all its repeats' rows and on no other batch's, and each batch's time (its
+    largest ``seconds``) is counted once. Hours per repeat = hours / repeats: the repeats of a batch
+    share its time. Batches run one after another within a run; runs in parallel processes add up."""
+    rows = with_labels(rows)
+    setting = EXPERIMENT[:-2]  # without repeat and seed
+    clock = rows.sort_values("trial", kind="stable").groupby(EXPERIMENT).seconds
+    experiments = pd.DataFrame({"started": clock.first(), "seconds": clock.max()}).reset_index()
+    batches = experiments.groupby(setting + ["started"]).seconds.max().reset_index()
     table = pd.DataFrame({"repeats": experiments.groupby("label").size(),
                           "hours": batches.groupby("label").seconds.sum() / 3600})
     table = table.loc[column_order(table.index)]
@@ -401,11 +470,14 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for index, label in enumerate(column_order(learned.label.unique())):
         curve = learned[learned.label == label].groupby("trial").eval_mean.agg(["mean", "std", "count"])
-        half = Z95 * curve["std"].fillna(0) / np.sqrt(curve["count"])
+        t95 = stats.t.ppf(0.975, np.maximum(curve["count"] - 1, 1))  # no band from a single repeat: its sd is NaN
+        half = t95 * curve["std"].fillna(0) / np.sqrt(curve["count"])
         ax.plot(curve.index + 1, curve["mean"], marker="o", color=f"C{index}", label=label)
         ax.fill_between(curve.index + 1, curve["mean"] - half, curve["mean"] + half, color=f"C{index}", alpha=0.2)
-    for (task, cost), threshold in thresholds.items():
-        ax.axhline(threshold, color="k", linestyle="--", linewidth=0.8, label=f"success threshold {threshold:.2f}")
+    for key, threshold in thresholds.items():
+        name = f" ({threshold_name(key)})" if len(thresholds) > 1 else ""
+        ax.axhline(threshold, color="k", linestyle="--", linewidth=0.8,
+                   label=f"success threshold {threshold:.2f}{name}")
     ax.set_xlabel("trial")
     ax.set_ylabel("evaluation cost (mean of real runs)")
     ax.legend(fontsize=8)
@@ -415,19 +487,25 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
     plt.close(fig)
 
     lines = [f"# Learning: {os.path.basename(stem)}", "", f"Command: `{command}`", ""]
-    for (task, cost), threshold in thresholds.items():
-        values = np.sort(final[(final.task == task) & (final.cost == cost)].eval_mean.to_numpy())
+    pools = dict(list(final.groupby(THRESHOLD_KEYS)))
+    for key, threshold in thresholds.items():
+        pooled = pools[key].eval_mean.to_numpy()
+        values = np.sort(pooled[np.isfinite(pooled)])
+        diverged = (f"; {len(pooled) - len(values)} non-finite final costs, failures at any cut, are not pooled"
+                    if len(values) < len(pooled) else "")
         low, high = values[values < threshold], values[values >= threshold]
         separation = np.nan  # one group is empty where every run is on the same side of the cut
         if len(low) and len(high):
             spread = np.sqrt((np.sum((low - low.mean()) ** 2) + np.sum((high - high.mean()) ** 2)) / len(values))
             separation = (high.mean() - low.mean()) / spread if spread > 0 else np.nan
-        lines.append(f"- Success threshold for {task}, {cost} cost: final evaluation cost < {threshold:.3f} (Otsu's "
-                     f"cut of the {len(values)} pooled final costs; the two groups' means differ by {separation:.1f} "
-                     "within-group sd, where one normal sample gives about 2.7 and a uniform one 3.4: only a value "
-                     "well above that, say > 6, shows a real gap between learned and failed runs; below it the rates "
-                     f"depend on an arbitrary cut). Sorted: {', '.join(f'{v:.2f}' for v in values)}.")
-    lines += ["", *nonfinite_lines(learned), "",
+        task, cost, cut = key
+        lines.append(f"- Success threshold for {task}, {cost} cost{cut}: final evaluation cost < {threshold:.3f} "
+                     f"(Otsu's cut of the {len(values)} pooled final costs; the two groups' means differ by "
+                     f"{separation:.1f} within-group sd, where one normal sample gives about 2.7 and a uniform one "
+                     "3.4: only a value well above that, say > 6, shows a real gap between learned and failed "
+                     f"runs; below it the rates depend on an arbitrary cut{diverged}). Sorted: "
+                     f"{', '.join(f'{v:.2f}' for v in values)}.")
+    lines += ["", *incomplete_lines(learned), *nonfinite_lines(learned), "",
               "Success rate [Wilson 95 % interval] n = repeats (the paper's rate, 100 repeats):", "",
               table.reset_index().to_markdown(index=False), "",
               *[f"- `{m}`: INVALID, {why}." for m, why in INVALID_METHODS.items() if m in set(final.method)],

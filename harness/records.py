@@ -69,18 +69,25 @@ class ResultTable:
         return found
 
     def append(self, row: dict) -> None:
-        """Write one row now (the header with the first row; later rows in the header's column
-        order, whatever the order of their keys). A row with columns the file lacks (written by
-        an older version) adds them, empty in the older rows; a row lacking some is an error."""
+        """Write one row now (``extend``)."""
+        self.extend([row])
+
+    def extend(self, rows: list[dict]) -> None:
+        """Write ``rows`` now, in one write (the header with the first rows; later rows in the
+        header's column order, whatever the order of their keys). Rows with columns the file lacks
+        (written by an older version) add them, empty in the older rows; rows lacking some are an
+        error."""
+        names = list(dict.fromkeys(name for row in rows for name in row))
         if self._columns is None:
-            self._columns = list(row)
-        elif set(self._columns) - set(row):
-            raise ValueError(f"row columns {sorted(row)} lack {sorted(set(self._columns) - set(row))} of "
-                             f"{self.path}'s; write these results to another --out folder")
-        elif set(row) - set(self._columns):
-            self._columns += [column for column in row if column not in self._columns]
+            self._columns = names
+        elif lacking := [row for row in rows if set(self._columns) - set(row)]:
+            raise ValueError(f"row columns {sorted(lacking[0])} lack {sorted(set(self._columns) - set(lacking[0]))} "
+                             f"of {self.path}'s; write these results to another --out folder")
+        elif set(names) - set(self._columns):
+            self._columns += [column for column in names if column not in self._columns]
             self.read().reindex(columns=self._columns).to_csv(self.path, index=False)
-        pd.DataFrame([row])[self._columns].to_csv(self.path, mode="a", header=not os.path.exists(self.path),
-                                                  index=False)
-        self._done.add(self._key(row))
-        self.computed += 1
+        text = pd.DataFrame(rows)[self._columns].to_csv(index=False, header=not os.path.exists(self.path))
+        with open(self.path, "a") as f:
+            f.write(text)
+        self._done.update(self._key(row) for row in rows)
+        self.computed += len(rows)

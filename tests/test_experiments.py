@@ -142,15 +142,16 @@ def test_result_table_writes_rows_in_its_header_order_and_skips_written_keys(tmp
     ResultTable(path, ["cell"]).append(dict(cell="a", variance=1.5, seconds=2.0))
     table = ResultTable(path, ["cell"])  # a rerun
     assert table.has(dict(cell="a")) and not table.has(dict(cell="b"))
-    table.append(dict(seconds=4.0, cell="b", variance=3.5))  # keys in another order
-    assert pd.read_csv(path).to_dict("list") == dict(cell=["a", "b"], variance=[1.5, 3.5], seconds=[2.0, 4.0])
+    table.extend([dict(seconds=4.0, cell="b", variance=3.5), dict(cell="e", variance=0.5, seconds=1.0)])  # key order
+    assert pd.read_csv(path).to_dict("list") == dict(cell=["a", "b", "e"], variance=[1.5, 3.5, 0.5],
+                                                     seconds=[2.0, 4.0, 1.0])
     with pytest.raises(ValueError, match="another --out folder"):
         table.append(dict(cell="c", variance=1.0))
     table.append(dict(cell="d", variance=1.0, seconds=1.0, scenario="abc"))  # a newer version's column
     rows = pd.read_csv(path)
-    assert list(rows.columns) == ["cell", "variance", "seconds", "scenario"] and list(rows.cell) == ["a", "b", "d"]
-    assert rows.scenario.isna().tolist() == [True, True, False]
-    assert table.summary() == f"computed 2 cells, reused 1 from {path}"
+    assert list(rows.columns) == ["cell", "variance", "seconds", "scenario"] and list(rows.cell) == ["a", "b", "e", "d"]
+    assert rows.scenario.isna().tolist() == [True, True, True, False]
+    assert table.summary() == f"computed 3 cells, reused 1 from {path}"
 
 
 def test_alignment_statistics_on_known_cases():

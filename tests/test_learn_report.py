@@ -13,7 +13,8 @@ WIN, FAIL = 5.0, 30.0  # final costs of a learned and a failed run: Otsu's cut f
 
 def row(method, repeat, trial, eval_mean=np.nan, seconds=1.0, k=1.0):
     """One row of the learning CSV (trial 0 random, later trials learned)."""
-    return dict(task="cartpole", cost="angle", noise_k=k, task_options=OPTIONS, method=method, repeat=repeat,
+    return dict(task="cartpole", cost="angle", noise_k=k, task_options=f"{OPTIONS},noise_k={k}", method=method,
+                repeat=repeat,
                 seed=repeat, settings="s", trial=trial, learned=trial > 0, trial_return=20.0, eval_mean=eval_mean,
                 eval_std=0.1, data_points=30 * (trial + 1), nonfinite_steps=0.0 if trial else np.nan,
                 seconds=seconds)
@@ -46,7 +47,7 @@ def test_the_papers_rate_is_inside_or_outside_the_wilson_interval():
     assert learn_report.inside(0.3968, 0.3968, 0.8922) == "yes"  # the ends belong to the interval
     table, thresholds = learn_report.success_table(rows_of({**wins("tp", 7), **wins("pilco", 7)}))
     assert table.loc[("cartpole", "angle", 1.0), "tp"] == "0.70 [0.40, 0.89] n=10 (paper 0.99)"
-    assert thresholds == {("cartpole", "angle"): pytest.approx(17.5)}
+    assert thresholds == {("cartpole", "angle", ""): pytest.approx(17.5)}
 
 
 def robustness(rows: pd.DataFrame) -> list[str]:
@@ -140,3 +141,57 @@ def test_the_report_carries_the_comparison_with_the_paper(tmp_path):
                  "`rp_fs_seed0`: INVALID", "Non-finite gradient estimates: none", "![learning curves]"]:
         assert text in report, text
     assert (tmp_path / "learn_cartpole_angle_k1_quick.png").exists()
+
+
+def test_several_k_share_labels_and_the_threshold_is_per_cost_scale():
+    """k is a column of its own, not part of a method's label; a task option that changes the
+    cost's scale (``angle_cost_scale``) gets a threshold of its own, one that does not shares it."""
+    success = learn_report.success_rows(rows_of({**wins("tp", 9), **wins("tp", 4, k=16.0)}))
+    assert success.label.tolist() == ["tp", "tp"] and success.k.tolist() == [1.0, 16.0]
+    halved = rows_of(wins("tp", 5)).assign(task_options=lambda r: r.task_options + ",angle_cost_scale=0.5",
+                                          eval_mean=lambda r: r.eval_mean / 2)
+    scaled = pd.concat([rows_of(wins("tp", 5)).assign(task_options=lambda r: r.task_options + ",angle_cost_scale=1"),
+                        halved.assign(repeat=halved.repeat + 10, seed=halved.seed + 10)])
+    thresholds = learn_report.otsu_thresholds(learn_report.final_evaluations(scaled))
+    assert thresholds == {("cartpole", "angle", " [angle_cost_scale=0.5]"): pytest.approx(8.75),
+                          ("cartpole", "angle", " [angle_cost_scale=1]"): pytest.approx(17.5)}
+    policies = pd.concat([scaled, scaled.assign(task_options=scaled.task_options + ",rbf=pseudo",
+                                                repeat=scaled.repeat + 20, seed=scaled.seed + 20)])
+    assert learn_report.otsu_thresholds(learn_report.final_evaluations(policies)) == thresholds  # not a scale
+
+
+
+def test_the_final_evaluation_is_the_last_trials_row_of_each_complete_experiment():
+    rows = pd.DataFrame([row("tp", 0, 0), row("tp", 0, 1, WIN), row("tp", 0, 2, np.nan),  # diverged at the end
+                         row("tp", 1, 0), row("tp", 1, 1, WIN), row("tp", 1, 2, WIN),
+                         row("tp", 2, 0), row("tp", 2, 1, WIN),  # its last trial's row was never written
+                         row("tp", 3, 0), row("tp", 3, 1, FAIL), row("tp", 3, 2, FAIL)]).assign(
+        settings="learned_trials2-particles300")
+    rows = pd.concat([rows, rows[rows.repeat == 1].assign(seed=101, eval_mean=FAIL)])  # the same repeat, --seed 100
+    final = learn_report.final_evaluations(rows).set_index(["repeat", "seed"]).eval_mean
+    assert np.isnan(final[(0, 0)]) and final[(1, 1)] == WIN and final[(1, 101)] == FAIL and final[(3, 3)] == FAIL
+    assert (2, 2) not in final.index
+    assert learn_report.otsu_threshold(np.array([1.0, 2.0, 3.0, 20.0, 21.0, np.nan])) == pytest.approx(11.5)
+    assert learn_report.success_rows(rows).set_index("method").loc["tp", ["wins", "n"]].tolist() == [1, 4]
+    warning = learn_report.incomplete_lines(learn_report.with_labels(rows[rows.learned]))[0]
+    assert warning.endswith("tp repeat 2 (1 trials).")
+
+
+def test_a_batch_is_counted_once_by_the_clock_of_its_first_trial():
+    """Repeats 0 and 1 share a batch whose rows for repeat 1's last trial are missing: its time is
+    still the batch's largest clock, counted once."""
+    rows = pd.DataFrame([row("tp", 0, 0, seconds=5.0), row("tp", 0, 1, WIN, 250.0),
+                         row("tp", 1, 0, seconds=5.0), row("tp", 2, 0, seconds=7.0), row("tp", 2, 1, WIN, 100.0)])
+    assert learn_report.compute_hours(rows).loc["tp", "hours"] == pytest.approx(350 / 3600)
+
+
+def test_a_significant_reversal_refutes_a_claim_and_a_method_without_success_loses_nothing():
+    cell = orderings({**wins("rp_fs", 9), **wins("gr", 0), **wins("tp", 9)})
+    assert ("does not hold on the point estimates; refuted at 0.05 (two-sided Fisher exact p = 0.000119, the "
+            "smallest of 1 against the claim: RP_FS vs GR).") in cell[2]
+    never = orderings({**wins("lr", 9), **wins("tp", 9), **wins("pilco", 9), **wins("rp_fs", 0),
+                       **wins("lr", 9, k=16.0), **wins("tp", 9, k=16.0), **wins("pilco", 1, k=16.0),
+                       **wins("rp_fs", 0, k=16.0)})[1]
+    assert "LR 0.00, TP 0.00, PILCO 0.89, RP_FS -: holds on the point estimates" in never
+    assert never.endswith("the largest of 2: LR vs PILCO).")  # RP_FS, with nothing to lose, is left out
+    assert learn_report.wilson_interval(0, 11)[0] == 0.0 and learn_report.wilson_interval(21, 21)[1] == 1.0
