@@ -337,8 +337,10 @@ def claim_tp_not_below_pilco(group: pd.DataFrame) -> str:
     if absent := missing(cell.index, ["tp", "pilco"]):
         return absent + " at k = 1"
     tp, pilco = cell.loc["tp"], cell.loc["pilco"]
+    paper = PAPER.get((tp.task, tp.cost, 1.0), {})
+    theirs = f"; the paper's own: TP {paper['tp']:.2f}, PILCO {paper['pilco']:.2f}" if paper else ""
     return f"{rate_text(tp)} vs {rate_text(pilco)}: " + verdict(
-        {"TP vs PILCO": (fisher_p(tp, pilco), tp.rate >= pilco.rate)}, "two-sided Fisher exact")
+        {"TP vs PILCO": (fisher_p(tp, pilco), tp.rate >= pilco.rate)}, "two-sided Fisher exact") + theirs
 
 
 def needs_ks(task: str, cost: str, k: float) -> str:
