@@ -17,7 +17,8 @@ At theta0 of the scenario (``harness.scenario``; the same theta0 and task for ev
   variance (trace of the covariance) and, against the reference g*, the cosine similarity
   ``g_r . g* / (|g_r| |g*|)`` and the relative error ``|g_r - g*| / |g*|``, each as a mean over
   repeats with a 95 % interval (normal, 1.96 standard errors), and the cosine of the mean
-  gradient (what averaging many estimates would give: the model's bias, not the noise).
+  gradient (towards what averaging many estimates would give, the model's bias; the mean of
+  ``repeats`` heavy-tailed estimates keeps much of their noise).
 
 Rows go to ``compare_{task}.csv`` as each cell finishes (a rerun resumes); the reference to
 ``.cache/``; the markdown beside the CSV.
@@ -113,7 +114,8 @@ def fd_gradient(problem, theta, key: jax.Array, num_particles: int, step: float)
     ``g_i = (J(theta + h e_i) - J(theta - h e_i)) / 2h``, J the mean return of ``num_particles``
     particles drawn with ``key`` (the same draws on both sides), ``e_i`` the i-th coordinate of
     theta flattened. An estimate of the gradient of J smoothed over +-h: its bias is O(h^2), and
-    its variance is bounded by that of the returns over (2h)^2 however chaotic the dynamics."""
+    its variance, that of the difference of the two means over (2h)^2, is at most Var(J-hat) / h^2
+    however chaotic the dynamics."""
     flat, unflatten = ravel_pytree(theta)
 
     def objective(x):
@@ -126,12 +128,14 @@ def fd_gradient(problem, theta, key: jax.Array, num_particles: int, step: float)
 class Reference(NamedTuple):
     """The reference gradient g* (n,), its relative standard error |standard error| / |g*|, and
     for the fd reference the cosine and relative difference |g*_{h/2} - g*| / |g*| of the same
-    reference at half the step (NaN otherwise)."""
+    reference at half the step, with the relative standard error of that difference over the
+    paired draws (NaN otherwise)."""
 
     grad: np.ndarray
     rse: float
     half_step_cosine: float = np.nan
     half_step_difference: float = np.nan
+    half_step_noise: float = np.nan
 
 
 def mean_and_rse(grads: np.ndarray) -> tuple[np.ndarray, float]:
@@ -167,8 +171,11 @@ def reference_gradient(args: Args, theta0, content: str, key: jax.Array) -> Refe
     if "half_step" not in saved:
         return Reference(grad, rse)
     half = saved["half_step"].mean(axis=0)
-    return Reference(grad, rse, float(half @ grad / (np.linalg.norm(half) * np.linalg.norm(grad))),
-                     float(np.linalg.norm(half - grad) / np.linalg.norm(grad)))
+    paired = saved["half_step"] - saved["grads"]  # the same draws at h and h / 2: (R, n)
+    norm = np.linalg.norm(grad)
+    return Reference(grad, rse, float(half @ grad / (np.linalg.norm(half) * norm)),
+                     float(np.linalg.norm(paired.mean(axis=0)) / norm),
+                     float(np.sqrt(np.sum(paired.var(axis=0, ddof=1)) / len(paired)) / norm))
 
 
 def run(args: Args) -> tuple[pd.DataFrame, Reference]:
@@ -235,17 +242,24 @@ def reference_lines(args: Args, reference: Reference) -> list[str]:
             f"{args.reference_estimator} estimates with")
     lines = [f"- Reference g*: the mean of {args.reference_repeats} {what} {args.reference_particles} particles on the "
              f"{args.reference_model} dynamics; its relative standard error (|standard error| / |g*|) is "
-             f"{reference.rse:.3f}, which bounds how close to 1 a cosine can be measured."]
+             f"{reference.rse:.3f}: even an exact gradient would show a relative error of about that and a cosine "
+             f"of about 1 - {reference.rse:.3f}^2 / 2 = {1 - reference.rse**2 / 2:.3f} against it (in expectation; "
+             "every cell shares g*'s error, which the intervals below do not include)."]
     if np.isfinite(reference.half_step_cosine):
-        lines.append(f"- The same reference at h / 2 (the same draws): cosine with g* "
-                     f"{reference.half_step_cosine:.3f}, relative difference {reference.half_step_difference:.3f} (the step's bias, plus the noise).")
+        bias = reference.half_step_difference > 3 * reference.half_step_noise
+        lines.append(f"- The same reference at h / 2 (the same draws): cosine with g* {reference.half_step_cosine:.3f}, "
+                     f"relative difference {reference.half_step_difference:.3f}, against {reference.half_step_noise:.2g} "
+                     "from the noise (the paired standard error): "
+                     + (f"the step's bias, which for an O(h^2) bias puts g*'s own at about 4/3 of it, "
+                        f"{4 / 3 * reference.half_step_difference:.3f} of |g*|." if bias else
+                        "within the noise: no bias of the step is measurable."))
     return lines
 
 
 def write_report(args: Args, rows: pd.DataFrame, reference: Reference, objectives: list[str]) -> None:
     """The markdown: settings, the reference's quality, the table and what it says."""
     models = str_list(args.models)
-    wide = rows.pivot_table(index=["estimator", "particles"], columns="model",
+    wide = rows.pivot_table(index=["estimator", "particles"], columns="model", dropna=False,
                             values=["variance", "cosine", "cosine_ci", "rel_error", "rel_error_ci", "cosine_of_mean",
                                     "nonfinite_estimates"])
     table = pd.DataFrame(index=wide.index)
@@ -262,8 +276,12 @@ def write_report(args: Args, rows: pd.DataFrame, reference: Reference, objective
         table[f"rel. error {model}"] = [f"{c:.3g} +- {h:.2g}" for c, h in
                                         zip(wide["rel_error"][model], wide["rel_error_ci"][model])]
         table[f"cosine of mean {model}"] = wide["cosine_of_mean"][model].map("{:.3f}".format)
-    for model in models:  # cells measured on some models only
-        table.loc[wide["variance"][model].isna(), [c for c in table.columns if c.endswith(f" {model}")]] = "not run"
+        finite = args.repeats - wide["nonfinite_estimates"][model]
+        table[f"noise of mean {model}"] = (np.sqrt(wide["variance"][model] / finite)
+                                           / np.linalg.norm(reference.grad)).map("{:.2g}".format)
+    for model in models:  # cells measured on some models only (a cell that ran counts its non-finite estimates)
+        table.loc[wide["nonfinite_estimates"][model].isna(),
+                  [c for c in table.columns if c.endswith(f" {model}")]] = "not run"
     lines = [
         f"# Learned model against true dynamics: {args.task}",
         "",
@@ -279,7 +297,9 @@ def write_report(args: Args, rows: pd.DataFrame, reference: Reference, objective
         *objectives,
         *reference_lines(args, reference),
         f"- Per cell: {args.repeats} independent estimates; variance = trace of their covariance; cosine and relative "
-        "error are means over the estimates with 95 % intervals; 'cosine of mean' is that of their average; "
+        "error are means over the estimates with 95 % intervals; 'cosine of mean' is that of their average, and "
+        "'noise of mean' the standard error of that average over |g*| (sqrt(variance / finite estimates) / |g*|: "
+        "near or above 1, the average's direction is noise); "
         "'non-finite': estimates with a NaN or infinite component, left out of every statistic.",
         "",
         *findings(args, rows),

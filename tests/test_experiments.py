@@ -182,6 +182,35 @@ def test_compare_findings_use_the_largest_particle_count_every_model_has():
     assert alone == "- rp: no particle count measured on every model."
 
 
+def test_the_references_quality_lines_separate_the_steps_bias_from_the_noise():
+    from harness.compare import Args, Reference, reference_lines
+
+    args = Args(reference_estimator="fd")
+    plain, biased = reference_lines(args, Reference(np.ones(3), 0.1, 1.0, 0.012, 0.0004))
+    assert "relative error of about that and a cosine of about 1 - 0.100^2 / 2 = 0.995" in plain
+    assert biased.endswith("the step's bias, which for an O(h^2) bias puts g*'s own at about 4/3 of it, 0.016 of |g*|.")
+    noisy = reference_lines(args, Reference(np.ones(3), 0.1, 1.0, 0.012, 0.01))[1]
+    assert noisy.endswith("within the noise: no bias of the step is measurable.")
+    assert len(reference_lines(Args(), Reference(np.ones(3), 0.1))) == 1  # an estimator's reference: no h / 2
+
+
+def test_compare_report_marks_only_missing_cells_not_run(tmp_path):
+    """A cell that ran with fewer than two finite estimates has no variance, but its non-finite
+    count is shown; a cell not measured on a model is 'not run'."""
+    from harness.compare import Args, Reference, write_report
+
+    def cell(model, particles, variance, nonfinite):
+        return dict(task="cartpole", model=model, estimator="lr", particles=particles, repeats=20, seed=0,
+                    scenario="abc", reference="r", variance=variance, cosine=0.5, cosine_ci=0.1, rel_error=1.0,
+                    rel_error_ci=0.1, cosine_of_mean=0.5, nonfinite_estimates=nonfinite)
+
+    rows = pd.DataFrame([cell("gp", 10, 1.0, 0), cell("jax", 10, np.nan, 19), cell("gp", 30, 2.0, 0)])
+    write_report(Args(out=str(tmp_path)), rows, Reference(np.ones(3), 0.1), [])
+    table = [line for line in (tmp_path / "compare_cartpole.md").read_text().splitlines() if line.startswith("| lr")]
+    assert "19/20" in table[0] and "not run" not in table[0]
+    assert table[1].count("not run") == 7  # jax at P = 30: its seven columns (with variance gp / jax)
+
+
 @pytest.mark.parametrize("model", ["gp", pytest.param("jax", marks=pytest.mark.slow),
                                    pytest.param("mjx", marks=pytest.mark.slow)])
 def test_landscape_runs_end_to_end_and_resumes(tmp_path, capsys, model):
