@@ -2,13 +2,13 @@
 
     python -m harness.learn_report reports/learn_cartpole_angle_k1.csv
 
-Success: the final learned trial's evaluation (mean cost of ``eval_runs`` real runs) is below
-a threshold chosen from the pooled distribution of final evaluations of every method and
-repeat in the table: the cut that minimises the within-group variance of the two groups it
-makes (Otsu's rule; where learning either swings the pole up or does not, the final costs are
-bimodal and the cut falls in the gap). The threshold, the two groups' separation (which says
-whether there was a gap to find) and the sorted final costs are printed with every table. Rates
-carry Wilson 95 % intervals.
+Success: the final learned trial's evaluation (mean cost of ``eval_runs`` real runs) is below a
+threshold chosen from the pooled distribution of final evaluations of every method, k and
+repeat in the table under one cost scale (``THRESHOLD_KEYS``): the cut that minimises the
+within-group variance of the two groups it makes (Otsu's rule; where learning either swings the
+pole up or does not, the final costs are bimodal and the cut falls in the gap). The threshold,
+the two groups' separation (which says whether there was a gap to find) and the sorted final
+costs are printed with every table. Rates carry Wilson 95 % intervals.
 
 Beside the wide table the report holds: a long table (``success_rows``: per task, cost, k and method the rate, its
 interval, the paper's rate and whether that lies inside the interval), every rate recomputed at the threshold
