@@ -167,6 +167,11 @@ def reference_gradient(args: Args, theta0, content: str, key: jax.Array) -> Refe
         os.makedirs(os.path.dirname(path), exist_ok=True)
         np.savez(path, **saved)
     saved = np.load(path)
+    broken = sum(int((~np.isfinite(saved[name])).any(axis=1).sum()) for name in saved.files)
+    if broken:
+        raise ValueError(f"the reference {path} has {broken} non-finite estimates: its mean would be NaN and dropping "
+                         "them would bias it; use --reference-estimator fd (bounded where RP's or LR's per-particle "
+                         "gradients blow up), or more --reference-particles, and delete the file")
     grad, rse = mean_and_rse(saved["grads"])
     if "half_step" not in saved:
         return Reference(grad, rse)

@@ -194,6 +194,19 @@ def test_the_references_quality_lines_separate_the_steps_bias_from_the_noise():
     assert len(reference_lines(Args(), Reference(np.ones(3), 0.1))) == 1  # an estimator's reference: no h / 2
 
 
+def test_a_reference_with_a_non_finite_estimate_is_refused(tmp_path):
+    import jax
+
+    from harness.compare import Args, reference_gradient
+
+    args = Args(out=str(tmp_path))
+    os.makedirs(tmp_path / ".cache")
+    np.savez(tmp_path / ".cache" / f"reference_cartpole_abc_{args.reference_name}.npz",
+             grads=np.array([[1.0, 2.0], [np.nan, 1.0], [1.0, 1.0]]))
+    with pytest.raises(ValueError, match="1 non-finite estimates.*--reference-estimator fd"):
+        reference_gradient(args, None, "abc", jax.random.key(0))
+
+
 def test_compare_report_marks_only_missing_cells_not_run(tmp_path):
     """A cell that ran with fewer than two finite estimates has no variance, but its non-finite
     count is shown; a cell not measured on a model is 'not run'."""
