@@ -199,11 +199,24 @@ def success_rows(rows: pd.DataFrame, scale: float = 1.0) -> pd.DataFrame:
         paper = PAPER.get((task, cost, float(k)), {}).get(method, np.nan)
         cells.append(dict(task=task, cost=cost, k=float(k), label=label, method=method, options=options,
                           wins=wins, n=n, rate=wins / n, low=low, high=high, paper=paper,
-                          inside=inside(paper, low, high)))
+                          inside=inside(paper, low, high), paper_p=paper_p(wins, n, paper)))
     table = pd.DataFrame(cells)
     rank = table.label.map({label: i for i, label in enumerate(column_order(table.label.unique()))})
     table = table.assign(rank=rank).sort_values(["task", "cost", "k", "rank"])
     return table.drop(columns="rank").reset_index(drop=True)
+
+
+PAPER_REPEATS = 100
+"""Repeats behind each of the paper's rates."""
+
+
+def paper_p(wins: int, n: int, paper: float) -> float:
+    """Two-sided Fisher exact p-value of our ``wins`` of ``n`` against the paper's rate as
+    ``PAPER_REPEATS`` repeats (the paper's own sampling error counted; NaN where it has none)."""
+    if np.isnan(paper):
+        return np.nan
+    theirs = round(paper * PAPER_REPEATS)
+    return float(stats.fisher_exact([[wins, n - wins], [theirs, PAPER_REPEATS - theirs]])[1])
 
 
 def interval_text(row) -> str:
@@ -231,7 +244,8 @@ def long_table(at: dict[float, pd.DataFrame]) -> pd.DataFrame:
     inside, and the rate at the threshold x every scale."""
     base = at[1.0]
     table = pd.DataFrame({"n": base.n, "rate [95 % interval]": base.apply(interval_text, axis=1),
-                          "paper": base.paper.map(lambda p: "-" if np.isnan(p) else f"{p:.2f}"), "inside": base.inside})
+                          "paper": base.paper.map(lambda p: "-" if np.isnan(p) else f"{p:.2f}"), "inside": base.inside,
+                          "p vs paper": base.paper_p.map(lambda p: "-" if np.isnan(p) else f"{p:.2g}")})
     for scale in SCALES:
         table[f"rate at T x {scale:g}"] = at[scale].rate.map("{:.2f}".format)
     table = table.reset_index()
@@ -442,7 +456,9 @@ def paper_comparison_lines(rows: pd.DataFrame, thresholds: dict) -> list[str]:
     threshold's scaling changes, and the paper's orderings evaluated from the rates."""
     at = rates_at_scales(rows)
     return ["Per cell (T: the threshold above): success rate [Wilson 95 % interval], the paper's rate, whether it "
-            "lies inside the interval ('-': the paper has no rate), and the rate at the threshold scaled:", "",
+            "lies inside the interval ('-': the paper has no rate), the two-sided Fisher exact p-value of our rate "
+            f"against the paper's as {PAPER_REPEATS} repeats (which counts the paper's sampling error too; with some "
+            "50 cells, a few below 0.05 are expected by chance), and the rate at the threshold scaled:", "",
             long_table(at).to_markdown(index=False, disable_numparse=True), "", *robustness_lines(at, thresholds), "",
             f"The paper's orderings from these rates (holds: the point estimates agree with the claim; significant: "
             f"a two-sided test rejects equality at {ALPHA:g}; 'not measured': a method of the claim is absent):", "",

@@ -44,6 +44,9 @@ def test_the_papers_rate_is_inside_or_outside_the_wilson_interval():
     assert (by_method.loc["tp", "paper"], by_method.loc["tp", "inside"]) == (0.99, "no")
     assert (by_method.loc["pilco", "paper"], by_method.loc["pilco", "inside"]) == (0.79, "yes")
     assert np.isnan(by_method.loc["lr_plain", "paper"]) and by_method.loc["lr_plain", "inside"] == "-"
+    # 7 of 10 against 99 of 100: [[7, 3], [99, 1]], two-sided Fisher exact p = 0.002115
+    assert by_method.loc["tp", "paper_p"] == pytest.approx(0.002115, rel=1e-3)
+    assert np.isnan(by_method.loc["lr_plain", "paper_p"])
     assert learn_report.inside(0.3968, 0.3968, 0.8922) == "yes"  # the ends belong to the interval
     table, thresholds = learn_report.success_table(rows_of({**wins("tp", 7), **wins("pilco", 7)}))
     assert table.loc[("cartpole", "angle", 1.0), "tp"] == "0.70 [0.40, 0.89] n=10 (paper 0.99)"
@@ -134,7 +137,7 @@ def test_the_report_carries_the_comparison_with_the_paper(tmp_path):
     report = (tmp_path / "learn_cartpole_angle_k1_quick.md").read_text()
     for text in ["Success threshold for cartpole, angle cost: final evaluation cost < 17.500",
                  "| task     | cost   | k   | label       | n   | rate [95 % interval]   | paper   | inside   |",
-                 "| cartpole | angle  | 1   | tp          | 10  | 0.90 [0.60, 0.98]      | 0.99    | no       |",
+                 "| cartpole | angle  | 1   | tp          | 10  | 0.90 [0.60, 0.98]      | 0.99    | no       | 0.17 ",
                  "Threshold robustness", "- Rates that change (flips): none.",
                  "The paper's orderings", "- (a) TP >= PILCO at k = 1 (cartpole, angle): TP 0.90",
                  "Compute time", "| total       |        30 |",
