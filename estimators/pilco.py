@@ -55,7 +55,9 @@ def propagate(problem: Problem, net, m: jax.Array, S: jax.Array) -> tuple[jax.Ar
 
 
 def pilco_objective(problem: Problem, theta) -> tuple[jax.Array, jax.Array]:
-    """``J(theta)`` and the expected cost per step (T,)."""
+    """``J(theta)`` and the expected cost per step (T,); fails with what is missing where the
+    problem cannot be moment-matched (``check_capabilities``)."""
+    check_capabilities(problem)
     forms = problem.moment_forms
     dtype = jax.tree.leaves(theta)[0].dtype
     net = problem.policy.prepare(theta)
@@ -90,7 +92,6 @@ class Pilco:
     deterministic); aux: ``costs`` (T,) expected cost per step, ``nan_count``."""
 
     def __call__(self, problem: Problem, theta, key: Any = None, num_particles: int = 0) -> Estimate:
-        check_capabilities(problem)
         (value, costs), grad = jax.value_and_grad(pilco_objective, argnums=1, has_aux=True)(problem, theta)
         nan_count = sum(jnp.sum(~jnp.isfinite(g)) for g in jax.tree.leaves(grad)) + jnp.sum(~jnp.isfinite(value))
         return Estimate(value, grad, jax.tree.map(jnp.zeros_like, grad), {"costs": costs, "nan_count": nan_count})

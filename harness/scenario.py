@@ -208,7 +208,7 @@ class ExperimentArgs:
     29.7), is ``FLAT_SCENARIO_FLAGS``."""
 
     task: str = "cartpole"
-    """Task name (cartpole or unicycle)."""
+    """Task name (a tasks.REGISTRY name: cartpole, unicycle)."""
     seed: int = 0
     """Seed of the scenario, the random direction and the estimates' keys."""
     out: str = "reports"

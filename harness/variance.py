@@ -38,7 +38,8 @@ class Args(scenario_lib.ExperimentArgs):
     """Gradient variance of each estimator against the particle count."""
 
     model: str = "gp"
-    """Dynamics the estimators roll out: gp (the scenario's GP), jax or mjx (the true dynamics)."""
+    """Dynamics the estimators roll out: gp (the scenario's GP), jax or mjx (the true dynamics);
+    harness.scenario.MODELS."""
     estimators: str = "rp,lr,biw_lr,biw_lr_pairwise,biw_lr_no_baseline,tp"
     """Comma-separated estimators (estimators.REGISTRY names, e.g. biw_lr_pairwise)."""
     particles: str = "10,30,100,300"
@@ -97,8 +98,12 @@ def repeated_estimates(estimator, problem, theta, num_particles: int, repeats: i
     call's time (compilation, unless an earlier cell compiled the same program)."""
     run = jitted(estimator)
     start = time.perf_counter()
-    jax.block_until_ready(run(problem, theta, key, num_particles))
+    first = jax.block_until_ready(run(problem, theta, key, num_particles))
     compile_s = time.perf_counter() - start
+    if "nan_count" not in first.aux:
+        raise ValueError(f"{type(estimator).__name__}'s Estimate.aux lacks 'nan_count', the number of non-finite "
+                         "terms behind it (estimators.base.particle_estimate adds it; an estimator of its own "
+                         "must too)")
     rows = []
     start = time.perf_counter()
     for r in range(repeats):

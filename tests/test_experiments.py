@@ -194,6 +194,30 @@ def test_the_references_quality_lines_separate_the_steps_bias_from_the_noise():
     assert len(reference_lines(Args(), Reference(np.ones(3), 0.1))) == 1  # an estimator's reference: no h / 2
 
 
+def test_an_estimator_without_a_nan_count_is_refused_with_what_to_add():
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    import tasks
+    from estimators.base import Estimate, task_problem
+    from harness.variance import repeated_estimates
+    from models.simulator import SimulatorModel
+
+    @dataclasses.dataclass(frozen=True)
+    class Silent:
+        def __call__(self, problem, theta, key, num_particles):
+            zeros = jax.tree.map(jnp.zeros_like, theta)
+            return Estimate(jnp.zeros(()), zeros, zeros, {})
+
+    task = tasks.make("cartpole")
+    problem = task_problem(task, SimulatorModel(task))
+    theta = task.default_policy().init(jax.random.key(0))
+    with pytest.raises(ValueError, match="Silent's Estimate.aux lacks 'nan_count'"):
+        repeated_estimates(Silent(), problem, theta, 4, 2, jax.random.key(1))
+
+
 def test_a_reference_with_a_non_finite_estimate_is_refused(tmp_path):
     import jax
 

@@ -40,8 +40,13 @@ def test_pilco_needs_a_moment_model():
 
     task = tasks.make("cartpole")
     problem = task_problem(task, SimulatorModel(task))
+    theta = task.default_policy().init(jax.random.key(0))
     with pytest.raises(ValueError, match="next_state_moments"):
-        estimators.make("pilco")(problem, task.default_policy().init(jax.random.key(0)), None, 0)
+        estimators.make("pilco")(problem, theta, None, 0)
+    from harness.episodic import pilco_optimiser  # the learning loop's PILCO says the same, before any step
+
+    with pytest.raises(ValueError, match="next_state_moments"):
+        pilco_optimiser(2)(problem, theta, None)
 
 
 @pytest.fixture(scope="module")
