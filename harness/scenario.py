@@ -28,7 +28,7 @@ import hashlib
 import json
 import os
 import sys
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.flatten_util
@@ -42,8 +42,15 @@ from harness.episodic import learning_run, policy_optimiser
 from harness.records import load_pickle, save_pickle
 from models import gp
 from models.simulator import SimulatorModel
+from tasks.base import Task
 
-MODELS = ("gp", "jax", "mjx")
+MODELS: dict[str, Callable[[Task, "Scenario"], Problem]] = {
+    "gp": lambda task, scenario: task_problem(task, gp.GPModel(task), scenario.posterior),
+    "jax": lambda task, scenario: task_problem(task, SimulatorModel(task, backend="jax")),
+    "mjx": lambda task, scenario: task_problem(task, SimulatorModel(task, backend="mjx")),
+}
+"""The models an experiment can roll out (``--model``): each makes the task's problem from the
+scenario (its fitted GP, or the true dynamics in plain JAX or MJX)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -314,11 +321,9 @@ def unit_direction(theta, key: jax.Array):
 
 
 def model_problem(task_name: str, model: str, scenario: Scenario) -> Problem:
-    """The task's problem under ``model``: "gp" (the scenario's GP) or the true dynamics."""
-    task = tasks.make(task_name)
-    if model == "gp":
-        return task_problem(task, gp.GPModel(task), scenario.posterior)
-    return task_problem(task, SimulatorModel(task, backend=model))
+    """The task's problem under ``model`` (a ``MODELS`` name)."""
+    check_model(model)
+    return MODELS[model](tasks.make(task_name), scenario)
 
 
 def model_labels(task_name: str, models: list[str]) -> list[str]:
