@@ -1,6 +1,7 @@
 """Success tables and learning curves from the learning CSV alone (``harness.learn``).
 
     python -m harness.learn_report reports/learn_cartpole_angle_k1.csv
+    python -m harness.learn_report reports/learn_cartpole_angle_k{0.01,1,4}.csv --out reports/learn_cartpole_angle
 
 Success: the final learned trial's evaluation (mean cost of ``eval_runs`` real runs) is below a
 threshold chosen from the pooled distribution of final evaluations of every method, k and
@@ -18,6 +19,7 @@ paper's orderings evaluated from the rates (``ordering_lines``), and the compute
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 
@@ -128,10 +130,10 @@ def complete(learned: pd.DataFrame) -> pd.Series:
 
 def incomplete_lines(learned: pd.DataFrame) -> list[str]:
     """A warning naming the experiments left out for too few learned trials (``complete``), if any."""
-    short = learned[~complete(learned)].groupby(["label", "settings", "repeat"]).trial.nunique()
+    short = learned[~complete(learned)].groupby(EXPERIMENT).trial.nunique().reset_index()
     if short.empty:
         return []
-    names = "; ".join(f"{label} repeat {repeat} ({trials} trials)" for (label, _, repeat), trials in short.items())
+    names = "; ".join(f"{e.label}, k = {e.noise_k:g}, repeat {e.repeat} ({e.trial} trials)" for e in short.itertuples())
     return [f"**Left out: {len(short)} experiments with fewer learned trials than their settings** (rows cut off "
             f"while written; rerun them after deleting their rows): {names}.", ""]
 
@@ -156,7 +158,7 @@ def nonfinite_lines(learned: pd.DataFrame) -> list[str]:
     if flagged.empty:
         return [f"Non-finite gradient estimates: none in the {int(counts.notna().sum())} learned trials that count "
                 f"them{unknown}."]
-    columns = ["label", "settings", "repeat", "trial", "nonfinite_steps"]
+    columns = ["label", "noise_k", "settings", "repeat", "trial", "nonfinite_steps"]
     return [f"**WARNING: non-finite gradient estimates** in {len(flagged)} learned trials{unknown}. Each such "
             "optimiser step moved nothing (its NaN became a zero step); those runs optimised on fewer steps than "
             "their settings say:", "", flagged[columns].to_markdown(index=False)]
@@ -192,8 +194,8 @@ def success_rows(rows: pd.DataFrame, scale: float = 1.0) -> pd.DataFrame:
     final = final_evaluations(rows)
     thresholds = otsu_thresholds(final)
     cells = []
-    for (task, cost, cut, options, k, label, method), group in final.groupby(
-            THRESHOLD_KEYS + ["options", "noise_k", "label", "method"]):
+    for (task, cost, cut, k, label), group in final.groupby(THRESHOLD_KEYS + ["noise_k", "label"]):
+        method, options = group.method.iloc[0], group.options.iloc[0]  # the label is the method and options
         wins, n = int((group.eval_mean < scale * thresholds[(task, cost, cut)]).sum()), len(group)
         low, high = wilson_interval(wins, n)
         paper = PAPER.get((task, cost, float(k)), {}).get(method, np.nan)
@@ -473,6 +475,44 @@ def compute_lines(rows: pd.DataFrame) -> list[str]:
             compute_hours(rows).reset_index().to_markdown(index=False, floatfmt=".2f"), ""]
 
 
+def threshold_lines(final: pd.DataFrame, thresholds: dict) -> list[str]:
+    """A report line per threshold (``otsu_thresholds`` of the ``final_evaluations`` ``final``): the
+    cut, how far apart the two groups it makes are (in within-group sd: whether there was a gap
+    to find) and the sorted pooled final costs."""
+    lines = []
+    for key, group in final.groupby(THRESHOLD_KEYS):
+        threshold, pooled = thresholds[key], group.eval_mean.to_numpy()
+        values = np.sort(pooled[np.isfinite(pooled)])
+        diverged = (f"; {len(pooled) - len(values)} non-finite final costs, failures at any cut, are not pooled"
+                    if len(values) < len(pooled) else "")
+        low, high = values[values < threshold], values[values >= threshold]
+        separation = np.nan  # one group is empty where every run is on the same side of the cut
+        if len(low) and len(high):
+            spread = np.sqrt((np.sum((low - low.mean()) ** 2) + np.sum((high - high.mean()) ** 2)) / len(values))
+            separation = (high.mean() - low.mean()) / spread if spread > 0 else np.nan
+        task, cost, cut = key
+        lines.append(f"- Success threshold for {task}, {cost} cost{cut}: final evaluation "
+                     f"cost < {threshold:.3f} (Otsu's cut of the {len(values)} pooled final costs; the two groups' "
+                     f"means differ by {separation:.1f} within-group sd, where one normal sample gives about 2.7 and "
+                     "a uniform one 3.4: only a value well above that, say > 6, shows a real gap between learned and "
+                     f"failed runs; below it the rates depend on an arbitrary cut{diverged}). Sorted: "
+                     f"{', '.join(f'{v:.2f}' for v in values)}.")
+    return lines
+
+
+def with_curve_labels(frame: pd.DataFrame, several_k: bool) -> pd.DataFrame:
+    """``frame`` (``with_labels``) with ``curve``: the label, followed by " [k=K]" where the report
+    holds several k (a learning curve or a final cost per method and k, never pooled over k)."""
+    return frame.assign(curve=frame.label + (" [k=" + frame.noise_k.map("{:g}".format) + "]" if several_k else ""))
+
+
+def curve_order(frame: pd.DataFrame) -> list[str]:
+    """The ``curve`` labels of ``frame`` in the paper's column order, each method's by k."""
+    rank = {label: i for i, label in enumerate(column_order(frame.label.unique()))}
+    first = frame.drop_duplicates("curve")
+    return list(first.assign(rank=first.label.map(rank)).sort_values(["rank", "noise_k"]).curve)
+
+
 def write(rows: pd.DataFrame, stem: str, command: str) -> None:
     """``stem.md`` (thresholds, success tables, threshold robustness, the paper's orderings, compute
     time, per-method final costs) and ``stem.png``
@@ -483,14 +523,16 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
     import matplotlib.pyplot as plt
 
     table, thresholds = success_table(rows)
-    final = final_evaluations(rows)
-    learned = with_labels(rows[rows.learned.astype(bool)])
+    several_k = rows.noise_k.nunique() > 1
+    final = with_curve_labels(final_evaluations(rows), several_k)
+    learned = with_curve_labels(with_labels(rows[rows.learned.astype(bool)]), several_k)
+    curves = curve_order(learned)
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    for index, label in enumerate(column_order(learned.label.unique())):
-        curve = learned[learned.label == label].groupby("trial").eval_mean.agg(["mean", "std", "count"])
+    for index, curve_label in enumerate(curves):
+        curve = learned[learned.curve == curve_label].groupby("trial").eval_mean.agg(["mean", "std", "count"])
         t95 = stats.t.ppf(0.975, np.maximum(curve["count"] - 1, 1))  # no band from a single repeat: its sd is NaN
         half = t95 * curve["std"].fillna(0) / np.sqrt(curve["count"])
-        ax.plot(curve.index + 1, curve["mean"], marker="o", color=f"C{index}", label=label)
+        ax.plot(curve.index + 1, curve["mean"], marker="o", color=f"C{index}", label=curve_label)
         ax.fill_between(curve.index + 1, curve["mean"] - half, curve["mean"] + half, color=f"C{index}", alpha=0.2)
     for key, threshold in thresholds.items():
         name = f" ({threshold_name(key)})" if len(thresholds) > 1 else ""
@@ -504,53 +546,46 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
     fig.savefig(stem + ".png", dpi=110)
     plt.close(fig)
 
-    lines = [f"# Learning: {os.path.basename(stem)}", "", f"Command: `{command}`", ""]
-    pools = dict(list(final.groupby(THRESHOLD_KEYS)))
-    for key, threshold in thresholds.items():
-        pooled = pools[key].eval_mean.to_numpy()
-        values = np.sort(pooled[np.isfinite(pooled)])
-        diverged = (f"; {len(pooled) - len(values)} non-finite final costs, failures at any cut, are not pooled"
-                    if len(values) < len(pooled) else "")
-        low, high = values[values < threshold], values[values >= threshold]
-        separation = np.nan  # one group is empty where every run is on the same side of the cut
-        if len(low) and len(high):
-            spread = np.sqrt((np.sum((low - low.mean()) ** 2) + np.sum((high - high.mean()) ** 2)) / len(values))
-            separation = (high.mean() - low.mean()) / spread if spread > 0 else np.nan
-        task, cost, cut = key
-        lines.append(f"- Success threshold for {task}, {cost} cost{cut}: final evaluation cost < {threshold:.3f} "
-                     f"(Otsu's cut of the {len(values)} pooled final costs; the two groups' means differ by "
-                     f"{separation:.1f} within-group sd, where one normal sample gives about 2.7 and a uniform one "
-                     "3.4: only a value well above that, say > 6, shows a real gap between learned and failed "
-                     f"runs; below it the rates depend on an arbitrary cut{diverged}). Sorted: "
-                     f"{', '.join(f'{v:.2f}' for v in values)}.")
-    lines += ["", *incomplete_lines(learned), *nonfinite_lines(learned), "",
-              "Success rate [Wilson 95 % interval] n = repeats (the paper's rate, 100 repeats):", "",
-              table.reset_index().to_markdown(index=False), "",
-              *[f"- `{m}`: INVALID, {why}." for m, why in INVALID_METHODS.items() if m in set(final.method)],
-              "", *paper_comparison_lines(rows, thresholds), "", *compute_lines(rows),
-              "", f"![learning curves]({os.path.basename(stem)}.png)", "",
-              "Mean evaluation cost after each learned trial (mean over repeats):", "",
-              learned.pivot_table(index="trial", columns="label", values="eval_mean", aggfunc="mean")[
-                  column_order(learned.label.unique())].to_markdown(floatfmt=".2f"), "",
-              "Final evaluation cost per method (mean, sd):", "",
-              final.groupby(["label", "settings"]).eval_mean.agg(["mean", "std", "count"]).reset_index().to_markdown(
-                  index=False, floatfmt=".3f"), "",
-              "Task options of the runs: " + "; ".join(f"`{t}`" for t in sorted(final.task_options.unique())), ""]
+    per = "method and k" if several_k else "method"
+    lines = [f"# Learning: {os.path.basename(stem)}", "", f"Command: `{command}`", "",
+             *threshold_lines(final, thresholds), "", *incomplete_lines(learned), *nonfinite_lines(learned), "",
+             "Success rate [Wilson 95 % interval] n = repeats (the paper's rate, 100 repeats):", "",
+             table.reset_index().to_markdown(index=False), "",
+             *[f"- `{m}`: INVALID, {why}." for m, why in INVALID_METHODS.items() if m in set(final.method)],
+             "", *paper_comparison_lines(rows, thresholds), "", *compute_lines(rows),
+             "", f"![learning curves]({os.path.basename(stem)}.png)", "",
+             f"Mean evaluation cost after each learned trial (mean over repeats, per {per}):", "",
+             learned.pivot_table(index="trial", columns="curve", values="eval_mean", aggfunc="mean")[
+                 curves].to_markdown(floatfmt=".2f"), "",
+             f"Final evaluation cost per {per} (mean, sd):", "",
+             final.groupby(["curve", "settings"]).eval_mean.agg(["mean", "std", "count"]).reset_index(
+                 "settings").loc[curve_order(final)].rename_axis("label").reset_index().to_markdown(
+                 index=False, floatfmt=".3f"), "",
+             "Task options of the runs: " + "; ".join(f"`{t}`" for t in sorted(final.task_options.unique())), ""]
     with open(stem + ".md", "w") as f:
         f.write("\n".join(lines))
 
 
 def main(argv=None) -> None:
-    paths = argv if argv is not None else sys.argv[1:]
-    if len(paths) != 1 or not paths[0].endswith(".csv"):
-        raise SystemExit("usage: python -m harness.learn_report PATH.csv")
-    stem = paths[0][:-4]
-    rows = pd.read_csv(paths[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m harness.learn_report",
+        description="Success tables and learning curves from learning CSVs (harness.learn). Several CSVs (e.g. one "
+                    "per k, for the claims across k) are pooled into one report, written to --out.")
+    parser.add_argument("paths", nargs="+", metavar="PATH.csv")
+    parser.add_argument("--out", help="stem of the report (STEM.md, STEM.png); default: the one CSV's stem")
+    args = parser.parse_args(argv)
+    if not all(path.endswith(".csv") for path in args.paths):
+        parser.error("every PATH must be a .csv written by harness.learn")
+    if len(args.paths) > 1 and args.out is None:
+        parser.error("several CSVs need --out STEM (where to write the pooled report)")
+    stem = args.out or args.paths[0][:-4]
+    rows = pd.concat([pd.read_csv(path) for path in args.paths], ignore_index=True)
     mixed = rows.groupby(["method", "task_options"]).settings.nunique()
     if (mixed > 1).any():
-        raise SystemExit(f"{paths[0]} holds several settings for {list(mixed[mixed > 1].index)}: a rate mixes "
-                         "them; keep one settings value per method (e.g. filter the CSV) and rerun.")
-    write(rows, stem, f"python -m harness.learn_report {paths[0]}")
+        raise SystemExit(f"{' '.join(args.paths)} hold several settings for {list(mixed[mixed > 1].index)}: a rate "
+                         "mixes them; keep one settings value per method (e.g. filter the CSV) and rerun.")
+    out = f" --out {args.out}" if args.out else ""
+    write(rows, stem, f"python -m harness.learn_report {' '.join(args.paths)}{out}")
     print(f"wrote {stem}.{{md,png}}", file=sys.stderr)
 
 

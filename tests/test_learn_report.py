@@ -164,6 +164,26 @@ def test_several_k_share_labels_and_the_threshold_is_per_cost_scale():
 
 
 
+def test_a_report_over_several_csvs_keeps_each_k_apart(tmp_path):
+    """One CSV per k, pooled by ``--out``: the curves, per-trial means and final costs are per
+    method and k (k = 1's 9 wins and k = 16's 1 win are not averaged)."""
+    low, high = tmp_path / "learn_cartpole_angle_k1.csv", tmp_path / "learn_cartpole_angle_k16.csv"
+    rows_of(wins("tp", 9)).to_csv(low, index=False)
+    rows_of(wins("tp", 1, k=16.0)).to_csv(high, index=False)
+    with pytest.raises(SystemExit):  # several CSVs and nowhere to write
+        learn_report.main([str(low), str(high)])
+    learn_report.main([str(low), str(high), "--out", str(tmp_path / "pooled")])
+    report = (tmp_path / "pooled.md").read_text()
+    mean_low, mean_high = (9 * WIN + FAIL) / 10, (WIN + 9 * FAIL) / 10
+    for text in ["| cartpole | angle  |   1 | 0.90 [0.60, 0.98] n=10 (paper 0.99) |",
+                 "| cartpole | angle  |  16 | 0.10 [0.02, 0.40] n=10 (paper 0.40) |",
+                 "per method and k", "|   trial |   tp [k=1] |   tp [k=16] |",
+                 f"|       1 |       {mean_low:.2f} |       {mean_high:.2f} |",
+                 f"| tp [k=16] | s          | {mean_high:.3f} |"]:
+        assert text in report, text
+    assert (tmp_path / "pooled.png").exists()
+
+
 def test_the_final_evaluation_is_the_last_trials_row_of_each_complete_experiment():
     rows = pd.DataFrame([row("tp", 0, 0), row("tp", 0, 1, WIN), row("tp", 0, 2, np.nan),  # diverged at the end
                          row("tp", 1, 0), row("tp", 1, 1, WIN), row("tp", 1, 2, WIN),
@@ -177,7 +197,7 @@ def test_the_final_evaluation_is_the_last_trials_row_of_each_complete_experiment
     assert learn_report.otsu_threshold(np.array([1.0, 2.0, 3.0, 20.0, 21.0, np.nan])) == pytest.approx(11.5)
     assert learn_report.success_rows(rows).set_index("method").loc["tp", ["wins", "n"]].tolist() == [1, 4]
     warning = learn_report.incomplete_lines(learn_report.with_labels(rows[rows.learned]))[0]
-    assert warning.endswith("tp repeat 2 (1 trials).")
+    assert warning.endswith("tp, k = 1, repeat 2 (1 trials).")
 
 
 def test_a_batch_is_counted_once_by_the_clock_of_its_first_trial():
