@@ -257,7 +257,8 @@ def run(args: Args):
         if not missing:
             continue
         print(f"[batch {index + 1}/{len(batches)}] {method}, repeats {missing}", file=sys.stderr, flush=True)
-        # one write: a stop while writing cannot leave some repeats' rows, which a rerun would take as done
+        # one append, so that a stop is unlikely to leave some repeats' rows, which a rerun would take as done
+        # (it is not atomic: learn_report leaves out an experiment with fewer trials than its settings)
         table.extend([{**row_key(method, row["repeat"]), **row} for row in run_experiments(args, method, missing)])
         os.remove(checkpoint_path(args, method, missing))  # its rows are in the table now
         jax.clear_caches()  # each trial compiled its own programs (README: memory mappings)

@@ -71,7 +71,7 @@ def wilson_interval(successes: int, n: int) -> tuple[float, float]:
     p = successes / n
     centre = (p + Z95**2 / (2 * n)) / (1 + Z95**2 / n)
     half = Z95 * np.sqrt(p * (1 - p) / n + Z95**2 / (4 * n**2)) / (1 + Z95**2 / n)
-    # exact ends where every run failed or learned (round-off would leave 0 or 1 a few ulps outside)
+    # exact ends where every run failed or learned (round-off would leave them a few ulps inside 0 or 1)
     return (0.0 if successes == 0 else centre - half), (1.0 if successes == n else centre + half)
 
 

@@ -73,19 +73,20 @@ class ResultTable:
         self.extend([row])
 
     def extend(self, rows: list[dict]) -> None:
-        """Write ``rows`` now, in one write (the header with the first rows; later rows in the
+        """Write ``rows`` now, in one append (the header with the first rows; later rows in the
         header's column order, whatever the order of their keys). Rows with columns the file lacks
-        (written by an older version) add them, empty in the older rows; rows lacking some are an
-        error."""
+        (written by an older version) add them, empty in the older rows; a row lacking a column of
+        the file's or of another row's is an error, and nothing is written."""
+        if not rows:
+            return
         names = list(dict.fromkeys(name for row in rows for name in row))
-        if self._columns is None:
-            self._columns = names
-        elif lacking := [row for row in rows if set(self._columns) - set(row)]:
-            raise ValueError(f"row columns {sorted(lacking[0])} lack {sorted(set(self._columns) - set(lacking[0]))} "
-                             f"of {self.path}'s; write these results to another --out folder")
-        elif set(names) - set(self._columns):
-            self._columns += [column for column in names if column not in self._columns]
-            self.read().reindex(columns=self._columns).to_csv(self.path, index=False)
+        columns = (self._columns or []) + [name for name in names if name not in (self._columns or [])]
+        if lacking := [row for row in rows if set(columns) - set(row)]:
+            raise ValueError(f"row columns {sorted(lacking[0])} lack {sorted(set(columns) - set(lacking[0]))} "
+                             f"of {self.path}'s or of the other rows'; write these results to another --out folder")
+        if self._columns is not None and columns != self._columns:
+            self.read().reindex(columns=columns).to_csv(self.path, index=False)
+        self._columns = columns
         text = pd.DataFrame(rows)[self._columns].to_csv(index=False, header=not os.path.exists(self.path))
         with open(self.path, "a") as f:
             f.write(text)

@@ -152,6 +152,13 @@ def test_result_table_writes_rows_in_its_header_order_and_skips_written_keys(tmp
     assert list(rows.columns) == ["cell", "variance", "seconds", "scenario"] and list(rows.cell) == ["a", "b", "e", "d"]
     assert rows.scenario.isna().tolist() == [True, True, True, False]
     assert table.summary() == f"computed 3 cells, reused 1 from {path}"
+    with pytest.raises(ValueError, match="other rows"):  # one row of a batch lacks the batch's new column
+        table.extend([dict(cell="f", variance=1.0, seconds=1.0, scenario="abc", trial=2),
+                      dict(cell="g", variance=1.0, seconds=1.0, scenario="abc")])
+    table.extend([])
+    assert pd.read_csv(path).equals(rows)  # neither wrote anything
+    ResultTable(str(tmp_path / "new.csv"), ["cell"]).extend([])
+    assert not (tmp_path / "new.csv").exists()
 
 
 def test_alignment_statistics_on_known_cases():
