@@ -76,8 +76,10 @@ class Args(scenario_lib.ExperimentArgs):
         super().__post_init__()
         for model in str_list(self.models) + [self.reference_model]:
             scenario_lib.check_model(model)
-        if self.reference_model == "gp":
-            raise ValueError("the reference must be a true-dynamics model (jax or mjx), not gp")
+        if scenario_lib.MODELS[self.reference_model].learned:
+            true = [name for name, spec in scenario_lib.MODELS.items() if not spec.learned]
+            raise ValueError(f"the reference must be a true-dynamics model ({', '.join(true)}), not the learned "
+                             f"{self.reference_model}")
         references = [self.reference_estimator] if self.reference_estimator != "fd" else []
         scenario_lib.check_estimators(str_list(self.estimators) + references)
         if self.reference_fd_step <= 0:
@@ -144,25 +146,29 @@ def mean_and_rse(grads: np.ndarray) -> tuple[np.ndarray, float]:
     return mean, float(np.sqrt(np.sum(grads.var(axis=0, ddof=1)) / len(grads)) / np.linalg.norm(mean))
 
 
-def reference_gradient(args: Args, theta0, content: str, key: jax.Array) -> Reference:
-    """The reference gradient, cached under ``out`` by the scenario's content hash."""
+def reference_gradient(args: Args, where: dict[str, scenario_lib.Setting], key: jax.Array) -> Reference:
+    """The reference gradient at the theta0 of the Settings ``where`` (by model), cached under
+    ``out`` by the scenario's content hash."""
+    some = next(iter(where.values()))
+    theta0, content = some.theta0, some.content
     path = os.path.join(args.out, ".cache", f"reference_{args.task}_{content}_{args.reference_name}.npz")
     if not os.path.exists(path):
         print(f"reference: {args.reference_repeats} x {args.reference_name.split('-')[1]} with "
               f"{args.reference_particles} particles on the {args.reference_model} dynamics",
               file=sys.stderr, flush=True)
-        where = scenario_lib.setting(args, args.reference_model)
+        problem = (where[args.reference_model].problem if args.reference_model in where else
+                   scenario_lib.model_problem(args.task, args.reference_model, some.scenario))
         if args.reference_estimator == "fd":
             def fd_estimate(r: int, h: float) -> np.ndarray:
                 print(f"reference: fd estimate {r + 1}/{args.reference_repeats} (h = {h:g})", file=sys.stderr,
                       flush=True)
-                return np.asarray(fd_gradient(where.problem, theta0, jax.random.fold_in(key, r),
+                return np.asarray(fd_gradient(problem, theta0, jax.random.fold_in(key, r),
                                               args.reference_particles, h))
 
             saved = {name: np.stack([fd_estimate(r, h) for r in range(args.reference_repeats)])
                      for name, h in (("grads", args.reference_fd_step), ("half_step", args.reference_fd_step / 2))}
         else:
-            saved = dict(grads=repeated_estimates(estimators.make(args.reference_estimator), where.problem, theta0,
+            saved = dict(grads=repeated_estimates(estimators.make(args.reference_estimator), problem, theta0,
                                                   args.reference_particles, args.reference_repeats, key).grads)
         os.makedirs(os.path.dirname(path), exist_ok=True)
         np.savez(path, **saved)
@@ -179,17 +185,17 @@ def reference_gradient(args: Args, theta0, content: str, key: jax.Array) -> Refe
     paired = saved["half_step"] - saved["grads"]  # the same draws at h and h / 2: (R, n)
     norm = np.linalg.norm(grad)
     return Reference(grad, rse, float(half @ grad / (np.linalg.norm(half) * norm)),
-                     float(np.linalg.norm(paired.mean(axis=0)) / norm),
+                     float(np.linalg.norm(half - grad) / norm),
                      float(np.sqrt(np.sum(paired.var(axis=0, ddof=1)) / len(paired)) / norm))
 
 
-def run(args: Args) -> tuple[pd.DataFrame, Reference]:
-    """Measure every missing cell; returns this run's rows and the reference."""
+def run(args: Args) -> tuple[pd.DataFrame, Reference, dict[str, scenario_lib.Setting]]:
+    """Measure every missing cell; returns this run's rows, the reference and the Setting per model."""
     table = ResultTable(os.path.join(args.out, f"compare_{args.task}.csv"), KEY_COLUMNS)
     seed_key = jax.random.key(args.seed)
-    where = {model: scenario_lib.setting(args, model) for model in str_list(args.models)}
+    where = scenario_lib.settings(args, str_list(args.models))
     theta0, content = next(iter(where.values())).theta0, next(iter(where.values())).content
-    reference = reference_gradient(args, theta0, content, jax.random.fold_in(seed_key, 4))
+    reference = reference_gradient(args, where, jax.random.fold_in(seed_key, 4))
     cells = [(m, e, p) for m in str_list(args.models) for e in str_list(args.estimators)
              for p in int_list(args.particles)]
     for index, (model, name, num_particles) in enumerate(cells):
@@ -209,7 +215,13 @@ def run(args: Args) -> tuple[pd.DataFrame, Reference]:
     rows = table.read()
     keep = (rows.seed == args.seed) & (rows.repeats == args.repeats) & (rows.scenario == content) & (
         rows.reference == args.reference_name)
-    return rows[keep], reference
+    return rows[keep], reference, where
+
+
+def split_models(models: list[str]) -> tuple[list[str], list[str]]:
+    """``models`` split into the learned ones and the true dynamics (``scenario.MODELS``)."""
+    return ([m for m in models if scenario_lib.MODELS[m].learned],
+            [m for m in models if not scenario_lib.MODELS[m].learned])
 
 
 def findings(args: Args, rows: pd.DataFrame) -> list[str]:
@@ -217,16 +229,16 @@ def findings(args: Args, rows: pd.DataFrame) -> list[str]:
     every model has (a model may lack the dearer cells)."""
     lines = ["## What the comparison shows", ""]
     models = str_list(args.models)
-    true = [m for m in models if m != "gp"]
+    learned, true = split_models(models)
     for name, group in rows[rows.model.isin(models)].groupby("estimator"):
         by_model = group.set_index(["model", "particles"]).sort_index()
         variance = {m: group[group.model == m].set_index("particles").variance for m in models}
         parts = []
-        if "gp" in models:
+        for fitted in learned:
             for model in true:
-                ratio = (variance["gp"] / variance[model]).dropna()
+                ratio = (variance[fitted] / variance[model]).dropna()
                 if len(ratio):
-                    parts.append(f"variance gp / {model} {ratio.min():.2g}-{ratio.max():.2g} over P = "
+                    parts.append(f"variance {fitted} / {model} {ratio.min():.2g}-{ratio.max():.2g} over P = "
                                  f"{', '.join(map(str, ratio.index))}")
         shared = set.intersection(*(set(variance[m].index) for m in models))
         if shared:
@@ -261,21 +273,22 @@ def reference_lines(args: Args, reference: Reference) -> list[str]:
     return lines
 
 
-def write_report(args: Args, rows: pd.DataFrame, reference: Reference, objectives: list[str]) -> None:
+def write_report(args: Args, rows: pd.DataFrame, reference: Reference, scenario_lines: list[str]) -> None:
     """The markdown: settings, the reference's quality, the table and what it says."""
     models = str_list(args.models)
     wide = rows.pivot_table(index=["estimator", "particles"], columns="model", dropna=False,
                             values=["variance", "cosine", "cosine_ci", "rel_error", "rel_error_ci", "cosine_of_mean",
                                     "nonfinite_estimates"])
+    wide = wide.dropna(how="all")  # dropna=False kept every model's columns, and every estimator x particles row
     table = pd.DataFrame(index=wide.index)
     for model in models:
         table[f"variance {model}"] = wide["variance"][model].map("{:.3g}".format)
         table[f"non-finite {model}"] = wide["nonfinite_estimates"][model].map(lambda n: f"{n:.0f}/{args.repeats}")
-    learned = [m for m in models if m == "gp"]
-    true = [m for m in models if m != "gp"]
-    for model in true:
-        if learned:
-            table[f"variance gp / {model}"] = (wide["variance"]["gp"] / wide["variance"][model]).map("{:.3g}".format)
+    learned, true = split_models(models)
+    for fitted in learned:
+        for model in true:
+            table[f"variance {fitted} / {model}"] = (wide["variance"][fitted] / wide["variance"][model]).map(
+                "{:.3g}".format)
     for model in models:
         table[f"cosine {model}"] = [f"{c:.3f} +- {h:.3f}" for c, h in zip(wide["cosine"][model], wide["cosine_ci"][model])]
         table[f"rel. error {model}"] = [f"{c:.3g} +- {h:.2g}" for c, h in
@@ -298,8 +311,7 @@ def write_report(args: Args, rows: pd.DataFrame, reference: Reference, objective
         f"--reference-repeats {args.reference_repeats} --seed {args.seed} {args.scenario_flags()}`",
         "",
         *scenario_lib.model_labels(args.task, str_list(args.models) + [args.reference_model]),
-        args.scenario_line(rows, "; every model is evaluated at its theta0"),
-        *objectives,
+        *scenario_lines,
         *reference_lines(args, reference),
         f"- Per cell: {args.repeats} independent estimates; variance = trace of their covariance; cosine and relative "
         "error are means over the estimates with 95 % intervals; 'cosine of mean' is that of their average, and "
@@ -318,10 +330,8 @@ def write_report(args: Args, rows: pd.DataFrame, reference: Reference, objective
 def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
-    rows, reference = run(args)
-    objectives = [scenario_lib.objective_line(scenario_lib.setting(args, model), model, args.seed)
-                  for model in str_list(args.models)]
-    write_report(args, rows, reference, objectives)
+    rows, reference, where = run(args)
+    write_report(args, rows, reference, args.scenario_lines(where, rows, "; every model is evaluated at its theta0"))
     print(f"wrote {os.path.join(args.out, f'compare_{args.task}')}.{{csv,md}}", file=sys.stderr)
 
 

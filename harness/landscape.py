@@ -159,9 +159,9 @@ def value_slice(args: Args, where: scenario_lib.Setting, delta: float, key: jax.
     return {"axis_i": np.asarray(axis_i), "axis_j": np.asarray(axis_j), "values": np.asarray(values)}
 
 
-def run(args: Args) -> tuple[pd.DataFrame, dict]:
+def run(args: Args) -> tuple[pd.DataFrame, dict, scenario_lib.Setting]:
     """Measure every missing delta (appending to the CSV), then the slices; returns this run's
-    rows and the slices {delta: value_slice(...)}."""
+    rows, the slices {delta: value_slice(...)} and the Setting."""
     table = ResultTable(args.stem + ".csv", KEY_COLUMNS)
     where = scenario_lib.setting(args, args.model)
     key = jax.random.fold_in(jax.random.key(args.seed), 3)
@@ -194,7 +194,7 @@ def run(args: Args) -> tuple[pd.DataFrame, dict]:
     rows = table.read()
     rows = rows[(rows.seed == args.seed) & (rows.particles == args.particles) & (rows.scenario == where.content)
                 & (rows.fd_step == args.fd_step) & (rows.estimators == args.estimators)]
-    return rows.sort_values("delta_theta"), slices
+    return rows.sort_values("delta_theta"), slices, where
 
 
 def agreement(rows: pd.DataFrame, name: str) -> tuple[int, int]:
@@ -232,7 +232,7 @@ def findings(args: Args, rows: pd.DataFrame) -> list[str]:
     return lines
 
 
-def write_report(args: Args, rows: pd.DataFrame, slices: dict, objective: str) -> None:
+def write_report(args: Args, rows: pd.DataFrame, slices: dict, scenario_lines: list[str]) -> None:
     """The figure (panels a-g) and the markdown (settings, findings, the per-delta table)."""
     import matplotlib
 
@@ -299,8 +299,7 @@ def write_report(args: Args, rows: pd.DataFrame, slices: dict, objective: str) -
         f"--grid {args.grid} --box-stds {args.box_stds:g} --seed {args.seed} {args.scenario_flags()}`",
         "",
         *scenario_lib.model_labels(args.task, [args.model]),
-        args.scenario_line(rows),
-        objective,
+        *scenario_lines,
         f"- theta = theta0 + delta d, d a fixed random unit direction; one fixed key draws the {args.particles} "
         "particles at every delta; intervals are 95 % (1.96 standard errors over particles). FTLE: finite-time "
         "Lyapunov exponent of the closed-loop particle map with the noise fixed, per control step "
@@ -322,9 +321,8 @@ def write_report(args: Args, rows: pd.DataFrame, slices: dict, objective: str) -
 def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
-    rows, slices = run(args)
-    objective = scenario_lib.objective_line(scenario_lib.setting(args, args.model), args.model, args.seed)
-    write_report(args, rows, slices, objective)
+    rows, slices, where = run(args)
+    write_report(args, rows, slices, args.scenario_lines({args.model: where}, rows))
     print(f"wrote {args.stem}.{{csv,md,png}}", file=sys.stderr)
 
 

@@ -44,13 +44,22 @@ from models import gp
 from models.simulator import SimulatorModel
 from tasks.base import Task
 
-MODELS: dict[str, Callable[[Task, "Scenario"], Problem]] = {
-    "gp": lambda task, scenario: task_problem(task, gp.GPModel(task), scenario.posterior),
-    "jax": lambda task, scenario: task_problem(task, SimulatorModel(task, backend="jax")),
-    "mjx": lambda task, scenario: task_problem(task, SimulatorModel(task, backend="mjx")),
+class ModelSpec(NamedTuple):
+    """A model an experiment can roll out: ``problem(task, scenario)`` makes the task's problem
+    under it; ``learned``: fitted to the scenario's data (``harness.compare`` sets it against the
+    true dynamics), else the true dynamics (a reference gradient may be computed on it)."""
+
+    problem: Callable[[Task, "Scenario"], Problem]
+    learned: bool
+
+
+MODELS: dict[str, ModelSpec] = {
+    "gp": ModelSpec(lambda task, scenario: task_problem(task, gp.GPModel(task), scenario.posterior), learned=True),
+    "jax": ModelSpec(lambda task, scenario: task_problem(task, SimulatorModel(task, backend="jax")), learned=False),
+    "mjx": ModelSpec(lambda task, scenario: task_problem(task, SimulatorModel(task, backend="mjx")), learned=False),
 }
-"""The models an experiment can roll out (``--model``): each makes the task's problem from the
-scenario (its fitted GP, or the true dynamics in plain JAX or MJX)."""
+"""The models an experiment can roll out (``--model``), by name: the scenario's fitted GP, or the
+true dynamics in plain JAX or MJX."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,32 +181,31 @@ def describe_provenance(saved: dict) -> str:
             f"XLA_FLAGS={how['xla_flags'] or '(none)'}")
 
 
-def load_pinned(args: ScenarioArgs, pinned_dir: str = PINNED_DIR, rebuild: bool = False) -> dict | None:
-    """The pinned file's content (``scenario``, ``provenance``), or None if there is none or
-    ``rebuild`` says not to use it."""
-    return None if rebuild else load_pickle(pinned_path(args, pinned_dir))
-
-
 def load_or_build(args: ScenarioArgs, cache_dir: str, pinned_dir: str = PINNED_DIR, rebuild: bool = False,
-                  pin: bool = False) -> Scenario:
+                  pin: bool = False) -> tuple[Scenario, str]:
     """The pinned scenario for ``args`` unless ``rebuild``; else the cached build under the
     current code, building and caching it if there is none. ``pin``: write what is used to
-    the pinned file (replacing one there). Says on stderr which it used."""
+    the pinned file (replacing one there). Says on stderr which it used, and returns it with
+    where it came from, as a phrase for reports."""
     pinned = pinned_path(args, pinned_dir)
-    saved = load_pinned(args, pinned_dir, rebuild)
+    shown = os.path.relpath(pinned, ROOT) if pinned.startswith(ROOT + os.sep) else pinned
+    saved = None if rebuild else load_pickle(pinned)
     if saved is not None:
         print(f"scenario: the pinned {pinned} ({describe_provenance(saved)}); --rebuild-scenario builds one "
               "under the current code", file=sys.stderr, flush=True)
+        source = f"the pinned {shown}, {describe_provenance(saved)}"
     else:
         path = cache_path(args, cache_dir)
         saved = load_pickle(path)
         if saved is None:
             saved = dict(scenario=build(args), provenance=provenance())
             save_pickle(saved, path)
+        source = "built under the current code, not pinned"
         if pin:
             save_pickle(saved, pinned)
             print(f"scenario: pinned to {pinned} ({describe_provenance(saved)})", file=sys.stderr, flush=True)
-    return jax.tree.map(jax.numpy.asarray, saved["scenario"])
+            source = f"built under the current code and pinned to {shown}, {describe_provenance(saved)}"
+    return jax.tree.map(jax.numpy.asarray, saved["scenario"]), source
 
 
 FLAT_SCENARIO_FLAGS = "--scenario-estimator tp --scenario-trials 2 --scenario-steps 200 --scenario-particles 100"
@@ -254,17 +262,15 @@ class ExperimentArgs:
         """The scenario's cache name (a hash of its settings), recorded in every result row."""
         return os.path.basename(cache_path(self.scenario, ""))
 
-    def scenario_line(self, rows, note: str = "") -> str:
-        """The report's scenario line: how it was built, where it came from (pinned or built
-        under the current code) and the content hash of the rows shown."""
+    def scenario_lines(self, where: dict[str, "Setting"], rows, note: str = "") -> list[str]:
+        """The report's lines on the scenario: how it was built, where it came from (pinned or
+        built under the current code), the content hash of the rows shown; then J under each
+        model of ``where`` (``objective_line``)."""
         hashes = ", ".join(sorted(map(str, rows.scenario.unique())))
-        pinned = pinned_path(self.scenario, self.scenarios_dir)
-        saved = load_pinned(self.scenario, self.scenarios_dir, self.rebuild_scenario)
-        shown = os.path.relpath(pinned, ROOT) if pinned.startswith(ROOT + os.sep) else pinned
-        source = (f"the pinned {shown}, {describe_provenance(saved)}" if saved
-                  else "built under the current code, not pinned")
-        return (f"- Scenario: {self.scenario.describe()}{note}; {source}. Content hash {hashes} (theta0, the "
-                "direction and the GP posterior, at float32 precision): every row shown was computed on it.")
+        source = next(iter(where.values())).source
+        return [f"- Scenario: {self.scenario.describe()}{note}; {source}. Content hash {hashes} (theta0, the "
+                "direction and the GP posterior, at float32 precision): every row shown was computed on it.",
+                *[objective_line(setting, model, self.seed) for model, setting in where.items()]]
 
     def scenario_flags(self) -> str:
         return (f"--scenario-trials {self.scenario_trials} --scenario-steps {self.scenario_steps} "
@@ -274,14 +280,16 @@ class ExperimentArgs:
 
 class Setting(NamedTuple):
     """Where an experiment measures: ``problem`` under the chosen model, ``theta0`` and the unit
-    ``direction`` d (both pytrees like theta), the scenario they come from, and ``content``,
-    the ``content_hash`` of what is computed on (every result row is keyed by it)."""
+    ``direction`` d (both pytrees like theta), the scenario they come from, ``content``, the
+    ``content_hash`` of what is computed on (every result row is keyed by it), and ``source``,
+    where the scenario came from (``load_or_build``)."""
 
     problem: Problem
     theta0: Any
     direction: Any
     scenario: Scenario
     content: str
+    source: str
 
     def theta(self, delta: float):
         """``theta0 + delta * d``."""
@@ -323,7 +331,7 @@ def unit_direction(theta, key: jax.Array):
 def model_problem(task_name: str, model: str, scenario: Scenario) -> Problem:
     """The task's problem under ``model`` (a ``MODELS`` name)."""
     check_model(model)
-    return MODELS[model](tasks.make(task_name), scenario)
+    return MODELS[model].problem(tasks.make(task_name), scenario)
 
 
 def model_labels(task_name: str, models: list[str]) -> list[str]:
@@ -358,11 +366,17 @@ def content_hash(theta0, direction, posterior: gp.GPPosterior) -> str:
     return digest.hexdigest()[:12]
 
 
-def setting(args: ExperimentArgs, model: str) -> Setting:
-    """The Setting of ``args`` under ``model``, building or loading the cached scenario under
-    ``args.out``."""
-    scn = load_or_build(args.scenario, os.path.join(args.out, ".cache"), args.scenarios_dir, args.rebuild_scenario,
-                        args.pin_scenario)
+def settings(args: ExperimentArgs, models: list[str]) -> dict[str, Setting]:
+    """The Setting of ``args`` under each of ``models``, from one load (or build, cached under
+    ``args.out``) of the scenario."""
+    scn, source = load_or_build(args.scenario, os.path.join(args.out, ".cache"), args.scenarios_dir,
+                                args.rebuild_scenario, args.pin_scenario)
     direction = unit_direction(scn.theta, jax.random.fold_in(jax.random.key(args.seed), 1))
-    return Setting(model_problem(args.task, model, scn), scn.theta, direction, scn,
-                   content_hash(scn.theta, direction, scn.posterior))
+    content = content_hash(scn.theta, direction, scn.posterior)
+    return {model: Setting(model_problem(args.task, model, scn), scn.theta, direction, scn, content, source)
+            for model in models}
+
+
+def setting(args: ExperimentArgs, model: str) -> Setting:
+    """The Setting of ``args`` under ``model`` (``settings``)."""
+    return settings(args, [model])[model]

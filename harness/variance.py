@@ -136,8 +136,8 @@ def cell_statistics(rep: Repeats) -> dict:
     }
 
 
-def run(args: Args) -> pd.DataFrame:
-    """Measure every missing cell (appending to the CSV) and return this run's table."""
+def run(args: Args) -> tuple[pd.DataFrame, scenario_lib.Setting]:
+    """Measure every missing cell (appending to the CSV); returns this run's table and its Setting."""
     table = ResultTable(os.path.join(args.out, f"variance_{args.task}_{args.model}.csv"), KEY_COLUMNS)
     where = scenario_lib.setting(args, args.model)
     key = jax.random.fold_in(jax.random.key(args.seed), 2)
@@ -157,7 +157,7 @@ def run(args: Args) -> pd.DataFrame:
               f"compile {stats['compile_seconds']:.1f} s)", file=sys.stderr, flush=True)
     print(f"variance: scenario {where.content}: {table.summary()}", file=sys.stderr, flush=True)
     rows = table.read()
-    return rows[(rows.seed == args.seed) & (rows.repeats == args.num_repeats) & (rows.scenario == where.content)]
+    return rows[(rows.seed == args.seed) & (rows.repeats == args.num_repeats) & (rows.scenario == where.content)], where
 
 
 def findings(table: pd.DataFrame) -> list[str]:
@@ -201,7 +201,7 @@ def findings(table: pd.DataFrame) -> list[str]:
     return lines
 
 
-def write_report(args: Args, table: pd.DataFrame, objective: str) -> None:
+def write_report(args: Args, table: pd.DataFrame, scenario_lines: list[str]) -> None:
     """Markdown (settings, variance table, findings) and the log-log PNG."""
     import matplotlib
 
@@ -234,8 +234,7 @@ def write_report(args: Args, table: pd.DataFrame, objective: str) -> None:
         f"{args.scenario_flags()}`",
         "",
         *scenario_lib.model_labels(args.task, [args.model]),
-        args.scenario_line(table),
-        objective,
+        *scenario_lines,
         f"- Variance: trace of the covariance of {args.num_repeats} independent gradient estimates "
         f"(float{'64' if args.x64 else '32'}); theta = theta0 + delta d, d a fixed random unit direction.",
         "",
@@ -259,9 +258,8 @@ def write_report(args: Args, table: pd.DataFrame, objective: str) -> None:
 def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
-    table = run(args)
-    objective = scenario_lib.objective_line(scenario_lib.setting(args, args.model), args.model, args.seed)
-    write_report(args, table, objective)
+    table, where = run(args)
+    write_report(args, table, args.scenario_lines({args.model: where}, table))
     print(f"wrote {os.path.join(args.out, f'variance_{args.task}_{args.model}')}.{{csv,md,png}}", file=sys.stderr)
 
 

@@ -2,6 +2,7 @@
 resume and argument checks), the scenario, and the statistics they report."""
 
 import os
+from types import SimpleNamespace
 
 import jax
 import numpy as np
@@ -72,6 +73,8 @@ def test_a_pinned_scenario_is_used_whatever_the_code_and_rebuild_ignores_it(tmp_
                    "--scenarios-dir", pinned]
     variance.main(argv + ["--pin-scenario"])
     [pinned_file] = (tmp_path / "pinned").glob("scenario_cartpole_*.pkl")
+    report = open(os.path.join(out, "variance_cartpole_gp.md")).read()
+    assert f"built under the current code and pinned to {pinned_file}" in report
     assert "code" in load_pickle(str(pinned_file))["provenance"]
     monkeypatch.setattr(scenario_lib, "code_digest", lambda: "changed-code")  # a new cache key
     capsys.readouterr()
@@ -234,25 +237,47 @@ def test_a_reference_with_a_non_finite_estimate_is_refused(tmp_path):
     os.makedirs(tmp_path / ".cache")
     np.savez(tmp_path / ".cache" / f"reference_cartpole_abc_{args.reference_name}.npz",
              grads=np.array([[1.0, 2.0], [np.nan, 1.0], [1.0, 1.0]]))
+    where = {"jax": SimpleNamespace(theta0=None, content="abc")}  # a Setting's fields that a cached reference needs
     with pytest.raises(ValueError, match="1 non-finite estimates.*--reference-estimator fd"):
-        reference_gradient(args, None, "abc", jax.random.key(0))
+        reference_gradient(args, where, jax.random.key(0))
 
 
 def test_compare_report_marks_only_missing_cells_not_run(tmp_path):
     """A cell that ran with fewer than two finite estimates has no variance, but its non-finite
-    count is shown; a cell not measured on a model is 'not run'."""
+    count is shown; a cell not measured on a model is 'not run'; an estimator x particles pair
+    measured on no model has no row."""
     from harness.compare import Args, Reference, write_report
 
-    def cell(model, particles, variance, nonfinite):
-        return dict(task="cartpole", model=model, estimator="lr", particles=particles, repeats=20, seed=0,
+    def cell(model, particles, variance, nonfinite, estimator="lr"):
+        return dict(task="cartpole", model=model, estimator=estimator, particles=particles, repeats=20, seed=0,
                     scenario="abc", reference="r", variance=variance, cosine=0.5, cosine_ci=0.1, rel_error=1.0,
                     rel_error_ci=0.1, cosine_of_mean=0.5, nonfinite_estimates=nonfinite)
 
-    rows = pd.DataFrame([cell("gp", 10, 1.0, 0), cell("jax", 10, np.nan, 19), cell("gp", 30, 2.0, 0)])
+    rows = pd.DataFrame([cell("gp", 10, 1.0, 0), cell("jax", 10, np.nan, 19), cell("gp", 30, 2.0, 0),
+                         cell("gp", 1000, 3.0, 0, estimator="rp")])
     write_report(Args(out=str(tmp_path)), rows, Reference(np.ones(3), 0.1), [])
     table = [line for line in (tmp_path / "compare_cartpole.md").read_text().splitlines() if line.startswith("| lr")]
     assert "19/20" in table[0] and "not run" not in table[0]
-    assert table[1].count("not run") == 7  # jax at P = 30: its seven columns (with variance gp / jax)
+    assert len(table) == 2 and table[1].count("not run") == 7  # jax at P = 30: its seven columns (with gp / jax)
+
+
+def test_compare_sets_every_learned_model_against_the_true_dynamics(tmp_path, monkeypatch):
+    """A model added to MODELS as learned gets the variance ratio against each true-dynamics
+    model, and cannot be the reference."""
+    from harness import compare, scenario as scenario_lib
+
+    monkeypatch.setitem(scenario_lib.MODELS, "gp2", scenario_lib.MODELS["gp"])
+    assert compare.split_models(["gp", "jax", "gp2", "mjx"]) == (["gp", "gp2"], ["jax", "mjx"])
+    rows = pd.DataFrame([dict(task="cartpole", model=model, estimator="lr", particles=10, repeats=20, seed=0,
+                              scenario="abc", reference="r", variance=variance, cosine=0.5, cosine_ci=0.1,
+                              rel_error=1.0, rel_error_ci=0.1, cosine_of_mean=0.5, nonfinite_estimates=0)
+                         for model, variance in (("gp2", 1.0), ("jax", 4.0))])
+    compare.write_report(compare.Args(out=str(tmp_path), models="gp2,jax"), rows, compare.Reference(np.ones(3), 0.1),
+                         [])
+    report = (tmp_path / "compare_cartpole.md").read_text()
+    assert "variance gp2 / jax 0.25-0.25 over P = 10" in report and "| variance gp2 / jax " in report
+    with pytest.raises(ValueError, match="true-dynamics model \\(jax, mjx\\), not the learned gp2"):
+        compare.Args(reference_model="gp2")
 
 
 @pytest.mark.parametrize("model", ["gp", pytest.param("jax", marks=pytest.mark.slow),
