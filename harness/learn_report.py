@@ -558,9 +558,10 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
              learned.pivot_table(index="trial", columns="curve", values="eval_mean", aggfunc="mean")[
                  curves].to_markdown(floatfmt=".2f"), "",
              f"Final evaluation cost per {per} (mean, sd):", "",
-             final.groupby(["curve", "settings"]).eval_mean.agg(["mean", "std", "count"]).reset_index(
-                 "settings").loc[curve_order(final)].rename_axis("label").reset_index().to_markdown(
-                 index=False, floatfmt=".3f"), "",
+             final.groupby("curve").agg(settings=("settings", "first"), mean=("eval_mean", "mean"),
+                                        std=("eval_mean", "std"), count=("eval_mean", "count")).loc[
+                 curve_order(final)].rename_axis("label").reset_index().to_markdown(index=False, floatfmt=".3f"),
+             "",
              "Task options of the runs: " + "; ".join(f"`{t}`" for t in sorted(final.task_options.unique())), ""]
     with open(stem + ".md", "w") as f:
         f.write("\n".join(lines))

@@ -80,7 +80,8 @@ class ResultTable:
         if not rows:
             return
         names = list(dict.fromkeys(name for row in rows for name in row))
-        columns = (self._columns or []) + [name for name in names if name not in (self._columns or [])]
+        known = self._columns or []
+        columns = known + [name for name in names if name not in known]
         if lacking := [row for row in rows if set(columns) - set(row)]:
             raise ValueError(f"row columns {sorted(lacking[0])} lack {sorted(set(columns) - set(lacking[0]))} "
                              f"of {self.path}'s or of the other rows'; write these results to another --out folder")
