@@ -62,9 +62,10 @@ _last_reported = [-1]
 class PolicyOptimisation(NamedTuple):
     """One trial's policy optimisation: the final ``theta``, the objective estimate at each step
     ``values`` (num_steps,), and ``nonfinite_steps``, how many steps had an estimate (value,
-    gradient or its variance) that was not finite. Such a step moves nothing
-    (``harness.optim.normalised_gradient`` maps NaN to 0), so a run can look normal while
-    most of its steps were lost: the count says so."""
+    gradient or its variance) that was not finite. Such a step moves no parameter whose
+    component is not finite (``harness.optim.normalised_gradient`` maps it to 0; usually the
+    whole gradient is NaN), so a run can look normal while many of its steps were lost: the
+    count says so."""
 
     theta: Any
     values: jax.Array

@@ -21,9 +21,9 @@ skips finished experiments. Between trials the batch's state (data, theta, rows 
 saved under ``{out}/.cache/learn/`` (or ``--checkpoints DIR``), so a rerun of an interrupted
 batch continues after its last finished trial (with the same repeats, settings and precision). Progress (batch, trial,
 optimiser step) goes to stderr. Each learned trial's row counts the optimiser steps whose
-estimate was not finite (``nonfinite_steps``: such a step moves nothing); the report flags
-every trial where it is above zero. The report (``harness.learn_report``) regenerates every table
-and figure from the CSV alone.
+estimate was not finite (``nonfinite_steps``: such a step moves no parameter whose component
+is not finite); the report flags every trial where it is above zero. The report
+(``harness.learn_report``) regenerates every table and figure from the CSV alone.
 """
 
 from __future__ import annotations

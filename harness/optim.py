@@ -33,9 +33,12 @@ class PippsSGDState(NamedTuple):
 
 
 def normalised_gradient(g: jax.Array, var: jax.Array) -> jax.Array:
-    """``g / sqrt(g^2 + var)`` elementwise; 0 where both are 0 (no information)."""
+    """``g / sqrt(g^2 + var)`` elementwise; 0 where both are 0 (no information) and where g or
+    var is not finite (an overflowed or NaN estimate moves that parameter nothing; inf / inf
+    would otherwise put NaN in the momentum and in theta for good)."""
     denom = jnp.sqrt(g**2 + var)
-    return jnp.where(denom > 0, g / jnp.where(denom > 0, denom, 1.0), 0.0)
+    usable = (denom > 0) & jnp.isfinite(g) & jnp.isfinite(var)
+    return jnp.where(usable, g / jnp.where(usable, denom, 1.0), 0.0)
 
 
 def pipps_sgd(learning_rate: float = LEARNING_RATE, momentum: float = MOMENTUM) -> optax.GradientTransformationExtraArgs:

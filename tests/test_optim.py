@@ -29,6 +29,17 @@ def test_noise_free_steps_are_signs():
     np.testing.assert_allclose(updates, [-5e-4, 5e-4])
 
 
+def test_an_infinite_or_nan_component_moves_that_parameter_nothing():
+    """An overflowed component (inf, with a finite or infinite variance) or a NaN one gives 0,
+    never NaN, so the momentum and theta stay finite; the finite components take their step."""
+    opt = pipps_sgd()
+    state = opt.init(jnp.zeros(4))
+    grad = jnp.array([jnp.inf, -jnp.inf, jnp.nan, 2.0])
+    updates, state = opt.update(grad, state, grad_var=jnp.array([0.0, jnp.inf, 1.0, 0.0]))
+    np.testing.assert_array_equal(updates, [0.0, 0.0, 0.0, -5e-4])
+    np.testing.assert_array_equal(state.momentum, [0.0, 0.0, 0.0, 1.0])
+
+
 def test_non_finite_estimates_at_chosen_steps_are_counted_and_move_nothing():
     """An estimator of J = |theta|^2 / 2 that returns NaN at steps 2 and 5 of 8 (it knows the
     step by its key: ``optimise_policy`` gives step s the key ``split(key, 8)[s]``)."""
