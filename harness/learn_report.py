@@ -160,8 +160,8 @@ def nonfinite_lines(learned: pd.DataFrame) -> list[str]:
                 f"them{unknown}."]
     columns = ["label", "noise_k", "settings", "repeat", "trial", "nonfinite_steps"]
     return [f"**WARNING: non-finite gradient estimates** in {len(flagged)} learned trials{unknown}. Each such "
-            "optimiser step moved nothing (its NaN became a zero step); those runs optimised on fewer steps than "
-            "their settings say:", "", flagged[columns].to_markdown(index=False)]
+            "optimiser step moved no parameter whose component was not finite (a zero step there); those runs "
+            "optimised on fewer steps than their settings say:", "", flagged[columns].to_markdown(index=False)]
 
 
 THRESHOLD_KEYS = ["task", "cost", "scale"]
