@@ -148,8 +148,9 @@ def column_order(labels) -> list[str]:
 
 def nonfinite_lines(learned: pd.DataFrame) -> list[str]:
     """Report lines on the optimiser steps whose gradient estimate was not finite (they move no
-    parameter whose component is not finite): a flagged table of every learned trial with a count above zero, or that there
-    were none. Rows written before the count was kept (no value) are counted as unknown."""
+    parameter whose component is not finite): a flagged table of every learned trial with a
+    count above zero, or that there were none. Rows written before the count was kept (no
+    value) are counted as unknown."""
     counts = learned["nonfinite_steps"] if "nonfinite_steps" in learned else pd.Series(np.nan, learned.index)
     unknown = f" ({int(counts.isna().sum())} learned trials predate the count)" if counts.isna().any() else ""
     flagged = learned[counts > 0]
