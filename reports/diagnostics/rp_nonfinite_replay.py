@@ -31,13 +31,13 @@ from models import gp, sparse_gp
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_cpu_enable_async_dispatch", False)
-ARGS = learn.Args(task="cartpole", cost="angle", methods="rp", batch=5, preset="paper", rollout_float32=True,
-                  gp_inducing=300)
+ARGS = learn.Args(task="cartpole", cost="angle", methods="rp", preset="paper", rollout_float32=True, gp_inducing=300)
 REPEATS = 5
 
 
 def replay_one(problem, theta, key, settings):
-    """Repeat 0's trial step by step: per step (value, grad, grad_var finite; max |particle grad|)."""
+    """Repeat 0's trial step by step: per step (value, grad, grad_var finite; max |particle grad|).
+    ``harness.episodic.optimise_policy``'s loop, keeping what it does not: which part was not finite."""
     estimator, optimiser = estimators.make("rp"), pipps_sgd()
 
     def step(carry, step_key):
@@ -54,18 +54,21 @@ def replay_one(problem, theta, key, settings):
 
 def main(state_file, command, posterior_file, precision="f32", how="single"):
     task, settings = ARGS.make_task(), ARGS.settings
-    state = pickle.load(open(state_file, "rb"))["state"]
+    with open(state_file, "rb") as f:
+        state = pickle.load(f)["state"]
     data = jax.tree.map(jnp.asarray, state.data)
     trial = state.trials_done - task.num_random_trials  # the learned trial replayed
     rows_held = int(np.max(np.asarray(data.num_valid)))
     start = time.perf_counter()
     if command == "fit":
         posterior = jax.vmap(sparse_gp.fitter(ARGS.gp_inducing, rows_held, settings["gp_steps"]))(data)
-        pickle.dump(jax.tree.map(np.asarray, gp.check_posterior(posterior)), open(posterior_file, "wb"))
+        with open(posterior_file, "wb") as f:
+            pickle.dump(jax.tree.map(np.asarray, gp.check_posterior(posterior)), f)
         print(f"fitted {rows_held} rows in {time.perf_counter() - start:.0f} s")
         return
     dtype = {"f32": jnp.float32, "f64": jnp.float64}[precision]
-    posterior = jax.tree.map(jnp.asarray, pickle.load(open(posterior_file, "rb")))
+    with open(posterior_file, "rb") as f:
+        posterior = jax.tree.map(jnp.asarray, pickle.load(f))
     problem = dataclasses.replace(task_problem(task, gp.GPModel(task)), model_params=posterior)
     keys = jnp.stack([jax.random.fold_in(jax.random.key(r), 20_000 + trial) for r in range(REPEATS)])
     if how == "batched":
