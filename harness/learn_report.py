@@ -160,9 +160,21 @@ def nonfinite_lines(learned: pd.DataFrame) -> list[str]:
         return [f"Non-finite gradient estimates: none in the {int(counts.notna().sum())} learned trials that count "
                 f"them{unknown}."]
     columns = ["label", "noise_k", "settings", "repeat", "trial", "nonfinite_steps"]
-    return [f"**WARNING: non-finite gradient estimates** in {len(flagged)} learned trials{unknown}. Each such "
-            "optimiser step moved no parameter whose component was not finite (a zero step there); those runs "
-            "optimised on fewer steps than their settings say:", "", flagged[columns].to_markdown(index=False)]
+    lines = [f"**WARNING: non-finite gradient estimates** in {len(flagged)} learned trials{unknown}. Each such "
+             "optimiser step moved no parameter whose component was not finite (a zero step there); those runs "
+             "optimised on fewer steps than their settings say:", "", flagged[columns].to_markdown(index=False)]
+    if flagged["settings"].str.contains(FLOAT32_ROLLOUT_SETTING).any():
+        lines += ["", FLOAT32_NONFINITE_CAUSE]
+    return lines
+
+
+FLOAT32_ROLLOUT_SETTING = "rollout_f32"
+"""The part of ``settings`` that ``harness.learn --rollout-float32`` adds."""
+FLOAT32_NONFINITE_CAUSE = (
+    "Under `rollout_f32` (particle rollouts in float32) the one traced cause so far is float32 overflow: a "
+    "particle's gradient beyond about 1.8e19 squares past float32's largest number in the estimate's variance "
+    "(`grad_var`), while the value and gradient stay finite (`reports/diagnostics/rp_nonfinite_replay.py`, RP "
+    "on cart-pole at k = 1); the CSV keeps only the count, not which part was not finite.")
 
 
 THRESHOLD_KEYS = ["task", "cost", "scale"]

@@ -218,3 +218,16 @@ def test_a_significant_reversal_refutes_a_claim_and_a_method_without_success_los
     assert "LR 0.00, TP 0.00, PILCO 0.89, RP_FS -: holds on the point estimates" in never
     assert never.endswith("the largest of 2: LR vs PILCO).")  # RP_FS, with nothing to lose, is left out
     assert learn_report.wilson_interval(0, 11)[0] == 0.0 and learn_report.wilson_interval(21, 21)[1] == 1.0
+
+
+def test_nonfinite_steps_are_flagged_with_the_float32_cause_only_under_float32_rollouts():
+    rows = rows_of({**wins("tp", 1, n=2), **wins("rp", 1, n=2)})
+    learned = learn_report.with_labels(rows[rows.learned])
+    assert learn_report.nonfinite_lines(learned) == [
+        "Non-finite gradient estimates: none in the 4 learned trials that count them."]
+    learned.loc[learned.method == "rp", "nonfinite_steps"] = [3.0, 0.0]
+    float64_lines = learn_report.nonfinite_lines(learned)
+    assert float64_lines[0].startswith("**WARNING: non-finite gradient estimates** in 1 learned trials.")
+    assert "rp" in float64_lines[2] and learn_report.FLOAT32_NONFINITE_CAUSE not in float64_lines
+    learned["settings"] = "particles300-rollout_f32"
+    assert learn_report.nonfinite_lines(learned)[-1] == learn_report.FLOAT32_NONFINITE_CAUSE
