@@ -199,7 +199,7 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
                  optimise: Callable[[Problem, Any, jax.Array], Any], gp_steps: int,
                  on_trial: Callable[[TrialRecord, gp.GPData], None] = lambda record, data: None,
                  batched: bool = False, trim_model: bool = False, resume: RunState | None = None,
-                 num_inducing: int = 0):
+                 num_inducing: int = 0, optimisation_key_per_run: bool = False):
     """The paper's episodic loop: the task's random trials, then ``num_learned`` times: fit the
     GP to all data (``gp_steps`` L-BFGS steps), ``theta = optimise(problem with the GP, theta,
     key).theta``, one real trial, add its data. Keys: random trial r ``fold_in(key, r)``, theta0
@@ -218,6 +218,11 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
 
     ``num_inducing``: once the data hold more rows, fit PILCO's FITC sparse GP with that many
     inducing inputs instead of the full GP (``models.sparse_gp.fitter``; 0: always the full GP).
+
+    ``optimisation_key_per_run``: every trial's optimisation gets the same key
+    ``fold_in(key, 20_000)``: a fixed-noise estimator (RP_FS, GR_FS) then optimises on the same
+    particles in every trial of the run, the other reading of the paper's "fixed seed"
+    (``harness.learn.NOISE_FIXED_PER_RUN``); the default fixes them per trial.
 
     ``resume``: continue from that state (the data and theta ``on_trial`` saw after trial
     ``trials_done - 1``) instead of starting afresh; the trials after it are the same
@@ -245,7 +250,8 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
             whole_episodes = -(-rows_held // task.horizon) * task.horizon
             posterior = gp.truncate(posterior, whole_episodes)
         problem = dataclasses.replace(problem, model_params=posterior)
-        result = over_seeds(optimise)(problem, theta, seeds_fold_in(key, 20_000 + trial))
+        optimisation_key = seeds_fold_in(key, 20_000 + (0 if optimisation_key_per_run else trial))
+        result = over_seeds(optimise)(problem, theta, optimisation_key)
         theta = result.theta
         episode = policy_episode(seeds_fold_in(key, 30_000 + trial), theta)
         data = add(data, episode)

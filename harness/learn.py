@@ -56,11 +56,20 @@ METHODS = {
     "tp": ("tp", {}),
     "tp-sigma_f": ("tp", {"model_var_scale": 0.0}),
     "tp+sigma_n": ("tp", {"noise_var_scale": 100.0}),
+    "rp_fs_run": ("rp_fs", {}),
+    "gr_fs_run": ("gr_fs", {}),
 }
 """method name -> (estimator, problem overrides). The paper's learning column "LR" is its
 "model-based batch importance weighted likelihood ratio", so the method ``lr`` is the
 ``biw_lr`` estimator; ``lr_plain`` is LR without the batch importance weights. The paper's TP
 variants change the model's variances, not the estimator."""
+
+NOISE_FIXED_PER_RUN = {"rp_fs_run": "rp_fs", "gr_fs_run": "gr_fs"}
+"""Method -> the paper's method it reads otherwise: the paper's RP_FS and GR_FS fix "the random
+seed", and it does not say for how long. ``rp_fs`` and ``gr_fs`` fix the noise for one trial's
+policy optimisation (DESIGN.md: "for the whole policy optimisation") and draw it afresh for the
+next trial; these fix it for the whole learning run, every trial optimising on the same
+particles (``learning_run(optimisation_key_per_run=True)``)."""
 
 PRESETS = {
     # learned trials (0: the task preset's), optimiser steps, particles, evaluation runs,
@@ -235,7 +244,8 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
               f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s)", file=sys.stderr, flush=True)
 
     learning_run(task, problem, keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
-                 batched=True, trim_model=True, resume=resume, num_inducing=args.gp_inducing)
+                 batched=True, trim_model=True, resume=resume, num_inducing=args.gp_inducing,
+                 optimisation_key_per_run=method in NOISE_FIXED_PER_RUN)
     return rows
 
 

@@ -203,7 +203,10 @@ def success_rows(rows: pd.DataFrame, scale: float = 1.0) -> pd.DataFrame:
     """One row per (task, cost, k, label), in the paper's method order: its ``method``, ``options``
     (the label's task options suffix), successes ``wins`` (final evaluation cost below ``scale`` x Otsu's threshold of
     the task and cost), ``n`` repeats, ``rate``, its Wilson 95 % ``low`` and ``high``, the ``paper``'s
-    rate (NaN where it has none) and ``inside`` (whether that lies in the interval)."""
+    rate (for a method of ``harness.learn.NOISE_FIXED_PER_RUN``, that of the
+    paper's method it reads; NaN where it has none) and ``inside`` (whether that lies in the interval)."""
+    from harness.learn import NOISE_FIXED_PER_RUN  # the other reading of a method has its rate
+
     final = final_evaluations(rows)
     thresholds = otsu_thresholds(final)
     cells = []
@@ -211,7 +214,7 @@ def success_rows(rows: pd.DataFrame, scale: float = 1.0) -> pd.DataFrame:
         method, options = group.method.iloc[0], group.options.iloc[0]  # the label is the method and options
         wins, n = int((group.eval_mean < scale * thresholds[(task, cost, cut)]).sum()), len(group)
         low, high = wilson_interval(wins, n)
-        paper = PAPER.get((task, cost, float(k)), {}).get(method, np.nan)
+        paper = PAPER.get((task, cost, float(k)), {}).get(NOISE_FIXED_PER_RUN.get(method, method), np.nan)
         cells.append(dict(task=task, cost=cost, k=float(k), label=label, method=method, options=options,
                           wins=wins, n=n, rate=wins / n, low=low, high=high, paper=paper,
                           inside=inside(paper, low, high), paper_p=paper_p(wins, n, paper)))

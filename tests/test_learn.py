@@ -157,6 +157,39 @@ def test_the_learning_tables_lr_is_the_papers_batch_importance_weighted_lr():
     assert "lr" in learn.DEFAULT_METHODS.split(",") and "lr_plain" not in learn.DEFAULT_METHODS.split(",")
 
 
+def test_the_per_run_fixed_noise_methods_keep_one_optimisation_key_for_the_whole_run():
+    """rp_fs / gr_fs fix their noise per trial: each trial's optimisation has its own key. The
+    other reading, rp_fs_run / gr_fs_run, gives every trial's optimisation the same key, so a
+    fixed-noise estimator (which uses that key at every step) sees the same particles all run."""
+    import jax
+
+    import estimators
+    import tasks
+    from estimators.base import task_problem
+    from harness.episodic import PolicyOptimisation, learning_run
+    from models import gp
+
+    task = tasks.make("cartpole")
+    problem = task_problem(task, gp.GPModel(task))
+
+    def keys_seen(per_run):
+        keys = []
+
+        def optimise(problem, theta, key):
+            keys.append(np.asarray(jax.random.key_data(key)))
+            return PolicyOptimisation(theta, np.zeros(1), 0)
+
+        learning_run(task, problem, jax.random.key(0), 2, optimise, 3, optimisation_key_per_run=per_run)
+        return keys
+
+    per_trial, per_run = keys_seen(False), keys_seen(True)
+    assert not np.array_equal(per_trial[0], per_trial[1]) and np.array_equal(per_run[0], per_run[1])
+    np.testing.assert_array_equal(per_run[0], per_trial[0])  # trial 1's key is the same in both readings
+    for method, paper_method in learn.NOISE_FIXED_PER_RUN.items():
+        assert learn.METHODS[method] == learn.METHODS[paper_method]  # the same estimator, only the key differs
+        assert estimators.make(learn.METHODS[method][0]).fixes_noise
+
+
 def test_success_statistics():
     bimodal = np.array([3.1, 2.9, 3.4, 27.0, 29.5, 28.8, 2.5])
     assert 3.4 < learn_report.otsu_threshold(bimodal) < 27.0

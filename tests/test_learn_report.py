@@ -44,6 +44,8 @@ def test_the_papers_rate_is_inside_or_outside_the_wilson_interval():
     assert (by_method.loc["tp", "paper"], by_method.loc["tp", "inside"]) == (0.99, "no")
     assert (by_method.loc["pilco", "paper"], by_method.loc["pilco", "inside"]) == (0.79, "yes")
     assert np.isnan(by_method.loc["lr_plain", "paper"]) and by_method.loc["lr_plain", "inside"] == "-"
+    per_run = learn_report.success_rows(rows_of(wins("rp_fs_run", 7))).set_index("method")
+    assert per_run.loc["rp_fs_run", "paper"] == 0.23  # the other reading of RP_FS, beside RP_FS's rate
     # 7 of 10 against 99 of 100: [[7, 3], [99, 1]], two-sided Fisher exact p = 0.002115
     assert by_method.loc["tp", "paper_p"] == pytest.approx(0.002115, rel=1e-3)
     assert np.isnan(by_method.loc["lr_plain", "paper_p"])
