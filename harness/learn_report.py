@@ -548,13 +548,13 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
         curve = learned[learned.curve == curve_label].groupby("trial").eval_mean.agg(["mean", "std", "count"])
         t95 = stats.t.ppf(0.975, np.maximum(curve["count"] - 1, 1))  # no band from a single repeat: its sd is NaN
         half = t95 * curve["std"].fillna(0) / np.sqrt(curve["count"])
-        ax.plot(curve.index + 1, curve["mean"], marker="o", color=f"C{index}", label=curve_label)
-        ax.fill_between(curve.index + 1, curve["mean"] - half, curve["mean"] + half, color=f"C{index}", alpha=0.2)
+        ax.plot(curve.index, curve["mean"], marker="o", color=f"C{index}", label=curve_label)
+        ax.fill_between(curve.index, curve["mean"] - half, curve["mean"] + half, color=f"C{index}", alpha=0.2)
     for key, threshold in thresholds.items():
         name = f" ({threshold_name(key)})" if len(thresholds) > 1 else ""
         ax.axhline(threshold, color="k", linestyle="--", linewidth=0.8,
                    label=f"success threshold {threshold:.2f}{name}")
-    ax.set_xlabel("trial")
+    ax.set_xlabel("trial (numbered as in the CSV: the random trials first, from 0)")
     ax.set_ylabel("evaluation cost (mean of real runs)")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
