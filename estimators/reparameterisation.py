@@ -5,7 +5,8 @@ by the chain rule (autodiff through the whole rollout).
 
 GR (Gaussian resampling): after each step the sampled particles ``s~_{t+1}`` are replaced by
 ``mu + L xi_i`` with ``mu`` and ``L L^T`` the particles' mean and covariance (ddof 1) and
-``xi_i ~ N(0, I)``; the gradient goes through the sampling, the fit and the Cholesky factor.
+``xi_i ~ N(0, I)``, independent of the noise that sampled ``s~``; the gradient goes through
+the sampling, the fit and the Cholesky factor.
 GR's particles are coupled, so the per-particle contributions behind its ``grad_var`` are
 each particle's use of theta, not independent estimates.
 """
@@ -31,6 +32,15 @@ def gaussian_resample(s_tilde: jax.Array, xi: jax.Array) -> jax.Array:
     return mu + xi @ cholesky(cov).T
 
 
+def draw_resampling_noise(problem: Problem, key: jax.Array, num_particles: int, dtype):
+    """GR's noise: ``draw_noise``'s s0 (P, S) and eps (T, P, S), and the resampling noise xi
+    (T, P, S) from a key of its own, so that xi is independent of s0 and eps. (Drawing xi from
+    ``fold_in(key, 1)`` reused eps itself: jax's ``split(key)[1]`` is ``fold_in(key, 1)``.)"""
+    noise_key, resample_key = jax.random.split(key)
+    s0, eps = draw_noise(problem, noise_key, num_particles, dtype)
+    return s0, eps, standard_normal(resample_key, eps.shape, dtype)
+
+
 @dataclasses.dataclass(frozen=True)
 class Reparameterisation:
     """RP (``gaussian_resampling=False``) or GR; ``__call__(problem, theta, key, P) -> Estimate``."""
@@ -38,11 +48,12 @@ class Reparameterisation:
     gaussian_resampling: bool = False
 
     def __call__(self, problem: Problem, theta, key: jax.Array, num_particles: int) -> Estimate:
-        s0, eps = draw_noise(problem, key, num_particles, theta_dtype(theta))
-        resample, xi = None, None
         if self.gaussian_resampling:
+            s0, eps, xi = draw_resampling_noise(problem, key, num_particles, theta_dtype(theta))
             resample = gaussian_resample
-            xi = standard_normal(jax.random.fold_in(key, 1), eps.shape, eps.dtype)
+        else:
+            s0, eps = draw_noise(problem, key, num_particles, theta_dtype(theta))
+            resample, xi = None, None
 
         def objective(nets):
             traj = rollout(problem, nets, s0, eps, resample=resample, resample_noise=xi)

@@ -79,7 +79,10 @@ INVALID_METHODS = {
     "rp_fs_seed0": "every repeat and trial optimised on the same particles (noise seed 0: the fixed-seed bug "
                    "fixed in issue 18); not the paper's RP_FS",
     "gr_fs_seed0": "every repeat and trial optimised on the same particles (noise seed 0: the fixed-seed bug "
-                   "fixed in issue 18); not the paper's GR_FS",
+                   "fixed in issue 18), and resampled with xi = eps as `gr_xi_eq_eps`; not the paper's GR_FS",
+    "gr_xi_eq_eps": "each resampled particle reused the noise that had sampled it (xi = eps: the resampling-key "
+                    "bug fixed on 2026-12-06); not the paper's GR",
+    "gr_fs_xi_eq_eps": "GR_FS with xi = eps as `gr_xi_eq_eps`; not the paper's GR_FS",
 }
 """Method names of rows kept for the record that measure no method of the paper, and why."""
 

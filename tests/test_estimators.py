@@ -153,6 +153,18 @@ def test_gr_bias_shrinks_with_particles():
     assert errors[40] < 0.5 * errors[4]
 
 
+def test_gr_resampling_noise_is_independent_of_the_sampling_noise():
+    """Each resampled particle must get fresh noise xi, not the eps that sampled it (until
+    2026-12-06 xi was drawn from ``fold_in(key, 1)``, which in jax is eps's own key, and the
+    correlation here was exactly 1). |r| < 4 standard errors of a zero correlation."""
+    from estimators.reparameterisation import draw_resampling_noise
+
+    _, eps, xi = draw_resampling_noise(PROBLEM, jax.random.key(0), 100, jnp.float64)
+    assert xi.shape == eps.shape
+    r = np.corrcoef(np.ravel(eps), np.ravel(xi))[0, 1]
+    assert abs(r) < 4 / np.sqrt(eps.size)
+
+
 def test_rp_fs_is_the_gradient_of_its_fixed_noise_objective():
     est = estimators.make("rp_fs")
     e = est(PROBLEM, THETA, jax.random.key(3), 30)
