@@ -138,7 +138,8 @@ def value_slice(args: Args, where: scenario_lib.Setting, delta: float, key: jax.
     problem, theta = where.problem, where.theta(delta)
     names = tasks.make(args.task).model_state_names
     i, j = (names.index(n) for n in args.slice_names)
-    s0, eps = draw_noise(problem, key, args.particles, theta_dtype(theta))
+    box_key, tail_key = jax.random.split(key)
+    s0, eps = draw_noise(problem, box_key, args.particles, theta_dtype(theta))
     s1 = rollout(problem, per_particle(problem.policy.prepare(theta), args.particles), s0, eps[:1]).states[1]
     centre, spread = jnp.mean(s1, axis=0), jnp.std(s1, axis=0)
     axis_i, axis_j = (jnp.linspace(centre[k] - args.box_stds * spread[k], centre[k] + args.box_stds * spread[k],
@@ -146,7 +147,7 @@ def value_slice(args: Args, where: scenario_lib.Setting, delta: float, key: jax.
     tail = dataclasses.replace(problem, horizon=problem.horizon - 1)
     n = args.slice_particles
     nets = per_particle(problem.policy.prepare(theta), n)
-    tail_eps = jax.random.normal(jax.random.fold_in(key, 1), (tail.horizon, n, centre.shape[0]), centre.dtype)
+    tail_eps = jax.random.normal(tail_key, (tail.horizon, n, centre.shape[0]), centre.dtype)
 
     def value(a, b):
         start = jnp.broadcast_to(centre.at[i].set(a).at[j].set(b), (n, centre.shape[0]))
