@@ -286,6 +286,33 @@ def test_biw_statistics_match_the_pairwise_formulas():
     np.testing.assert_allclose(stats.w, W.sum(1), rtol=1e-10, atol=1e-12)
 
 
+def test_score_surrogate_has_the_gradient_of_the_weighted_log_density():
+    """LR's and BIW-LR's score ``d/dzeta_i sum_j W_ij log N(s_j; m_i, sd_i)`` through m AND sd
+    (the linear-Gaussian tests exercise only m: their sd is constant; on a GP the sd terms are
+    about 1 % of LR's gradient, too little for a test of its mean to see). Against autodiff of
+    the textbook log-density, arbitrary weights W, sds 0.003-2: rtol 1e-8."""
+    from estimators.base import Zeta
+    from estimators.likelihood_ratio import ScoreStatistics, score_surrogate
+
+    k = jax.random.split(jax.random.key(4), 4)
+    mean = 3.0 + jax.random.normal(k[0], (30, 3))
+    std = jnp.exp(jax.random.uniform(k[1], (30, 3), minval=np.log(0.003), maxval=np.log(2.0)))
+    s = mean + std * jax.random.normal(k[2], (30, 3))
+    W = jax.random.normal(k[3], (30, 30))
+
+    def weighted_log_density(zeta):  # sum_j W_ij log N(s_j; m_i, sd_i), summed over i
+        r = s[None, :, :] - zeta.mean[:, None, :]
+        log_p = jnp.sum(-0.5 * (r / zeta.std[:, None, :]) ** 2 - jnp.log(zeta.std[:, None, :]), axis=-1)
+        return jnp.sum(W * log_p)
+
+    r = s[None, :, :] - mean[:, None, :]
+    stats = ScoreStatistics(mean, jnp.einsum("ij,ijd->id", W, r**2), jnp.einsum("ij,ijd->id", W, r), W.sum(1))
+    want = jax.grad(weighted_log_density)(Zeta(mean, std))
+    got = jax.grad(lambda zeta: score_surrogate(zeta, stats).sum())(Zeta(mean, std))
+    np.testing.assert_allclose(got.mean, want.mean, rtol=1e-8)
+    np.testing.assert_allclose(got.std, want.std, rtol=1e-8)
+
+
 def test_biw_baseline_is_finite_when_particles_do_not_overlap():
     """Particles 1e3 standard deviations apart: every off-diagonal mixture weight underflows,
     and the log-space baseline must stay finite. In that limit b_i is the cost-to-go of the
@@ -324,6 +351,38 @@ def test_estimators_run_on_the_true_dynamics(backend):
             assert bool(jnp.all((e.aux["k_lr"] >= 0) & (e.aux["k_lr"] <= 1)))
 
 
+def cartpole_gp_problem(horizon: int | None = None):
+    """(problem, theta): the cart-pole on a GP fitted (float64) to 60 random transitions, whose
+    predictive variance depends on the state (the linear-Gaussian system's does not), at a
+    policy with controls of a few newtons."""
+    import tasks
+    from models import gp
+
+    task = tasks.make("cartpole") if horizon is None else tasks.make("cartpole", horizon=horizon)
+    keys = jax.random.split(jax.random.key(7), 3)
+    z = 0.8 * jax.random.normal(keys[0], (60, 4))
+    u = jax.random.uniform(keys[1], (60, 1), minval=-10.0, maxval=10.0)
+    data = gp.add_data(gp.empty_data(60, task.gp_input_dim, 4), jax.vmap(task.gp_inputs)(z, u),
+                       jax.vmap(task.gp_targets)(z, jax.vmap(task.step)(z, u)))
+    problem = estimators.task_problem(task, gp.GPModel(task), gp.fit(data, num_steps=30))
+    theta = problem.policy.init(keys[2])
+    return problem, theta._replace(weights=30.0 * theta.weights)
+
+
+def test_tp_reduces_to_rp_and_biw_lr_where_the_variance_depends_on_the_state():
+    """On the linear-Gaussian system sd is constant, so TP's hand-written cotangent for it
+    (dG/ds_t * eps_t) is never exercised there; on a GP it is. TP with k = 0 must equal RP
+    (autodiff through ``m + sd * eps``) and with k = 1 BIW-LR, to round-off: rtol 1e-9, or 1e-9
+    of the largest entry for the small ones (measured: 5e-12 of it; a wrong sd term is O(1))."""
+    problem, theta = cartpole_gp_problem(horizon=10)
+    key = jax.random.key(5)
+    for k, other in ((0.0, "rp"), (1.0, "biw_lr")):
+        tp = estimators.make("tp", fixed_k=k)(problem, theta, key, 20)
+        ref = estimators.make(other)(problem, theta, key, 20)
+        scale = np.abs(flat(ref.grad, 1)).max()
+        np.testing.assert_allclose(flat(tp.grad, 1), flat(ref.grad, 1), rtol=1e-9, atol=1e-9 * scale, err_msg=other)
+
+
 def test_float32_rollouts_agree_with_float64_to_the_estimators_noise():
     """TP on the cart-pole's GP (trained and factorised in float64), P = 50, at a policy with
     controls of a few newtons: 200 keys, each estimated with the model and theta cast to
@@ -335,19 +394,9 @@ def test_float32_rollouts_agree_with_float64_to_the_estimators_noise():
     2.0. The same test on J detects dropping the model variance (z 4.4); on the gradient it
     does not (max |z| 2.2): at P = 50 the gradient's noise hides even that, which is the sense
     in which float32 agrees "to the estimators' noise"."""
-    import tasks
     from harness.episodic import cast_floating
-    from models import gp
 
-    task = tasks.make("cartpole")
-    keys = jax.random.split(jax.random.key(7), 3)
-    z = 0.8 * jax.random.normal(keys[0], (60, 4))
-    u = jax.random.uniform(keys[1], (60, 1), minval=-10.0, maxval=10.0)
-    data = gp.add_data(gp.empty_data(60, task.gp_input_dim, 4), jax.vmap(task.gp_inputs)(z, u),
-                       jax.vmap(task.gp_targets)(z, jax.vmap(task.step)(z, u)))
-    problem = estimators.task_problem(task, gp.GPModel(task), gp.fit(data, num_steps=30))
-    theta = problem.policy.init(keys[2])
-    theta = theta._replace(weights=30.0 * theta.weights)
+    problem, theta = cartpole_gp_problem()
     tp = estimators.make("tp")
     estimate = jax.jit(jax.vmap(lambda pr, th, k: tp(pr, th, k, 50), in_axes=(None, None, 0)))
     n, runs = 200, {}
