@@ -56,13 +56,17 @@ METHODS = {
     "tp": ("tp", {}),
     "tp-sigma_f": ("tp", {"model_var_scale": 0.0}),
     "tp+sigma_n": ("tp", {"noise_var_scale": 100.0}),
+    "pilco-sigma_n": ("pilco", {"noise_var_scale": 0.0}),
     "rp_fs_run": ("rp_fs", {}),
     "gr_fs_run": ("gr_fs", {}),
 }
 """method name -> (estimator, problem overrides). The paper's learning column "LR" is its
 "model-based batch importance weighted likelihood ratio", so the method ``lr`` is the
 ``biw_lr`` estimator; ``lr_plain`` is LR without the batch importance weights. The paper's TP
-variants change the model's variances, not the estimator."""
+variants change the model's variances, not the estimator. ``pilco-sigma_n`` is pilco-matlab's
+reading of PILCO's step: the latent function's variance propagated without the learned noise
+sn^2 (``gp/gp0d.m``, ``base/propagate.m``), where ``pilco`` adds sn^2 to every next state as the
+particle methods sample it."""
 
 NOISE_FIXED_PER_RUN = {"rp_fs_run": "rp_fs", "gr_fs_run": "gr_fs"}
 """Method -> the paper's method it reads otherwise: the paper's RP_FS and GR_FS fix "the random

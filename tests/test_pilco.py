@@ -96,6 +96,25 @@ def relative_errors(mc_mean, mc_sd, mean, sd):
     return np.abs(mean - mc_mean) / mc_sd, np.abs(sd / mc_sd - 1)
 
 
+def test_pilco_without_propagated_noise_drops_exactly_sn2(cartpole_problem):
+    """``learn``'s ``pilco-sigma_n`` (pilco-matlab's step: no sn^2 in the next state) differs
+    from ``pilco`` by the GP's noise variances on the next state's covariance and nothing else
+    (the Monte Carlo tests above check the ``pilco`` step itself)."""
+    import dataclasses
+
+    from harness.learn import METHODS
+
+    task, problem, theta = cartpole_problem
+    assert METHODS["pilco-sigma_n"] == ("pilco", {"noise_var_scale": 0.0})
+    net = problem.policy.prepare(theta)
+    m, S = jnp.asarray(problem.moment_forms.init_mean), jnp.asarray(problem.moment_forms.init_cov)
+    m1, S1 = propagate(problem, net, m, S)
+    m0, S0 = propagate(dataclasses.replace(problem, **METHODS["pilco-sigma_n"][1]), net, m, S)
+    sn2 = np.exp(2.0 * np.asarray(problem.model_params.log_hyp)[:, -1])
+    np.testing.assert_allclose(m0, m1, rtol=1e-12)
+    np.testing.assert_allclose(S1 - S0, np.diag(sn2), atol=1e-12 * np.abs(S1).max())
+
+
 def test_pilco_matches_monte_carlo_without_control(cartpole_problem):
     """With u = 0 the only approximations are the Gaussian fits of the sin/cos features, which
     are nearly linear for the start's sd of 0.1: over 3 steps the mean must agree within 0.01
