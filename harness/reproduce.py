@@ -126,14 +126,20 @@ def scenario_and_objective(committed_md: str, recomputed_md: str, recomputed_row
 
 
 def committed_rows(stem: str) -> pd.DataFrame:
-    """The committed CSV's rows that its report shows: its command's repeats and seed, and the
-    scenario it names (any, for rows that predate content hashes)."""
+    """The committed CSV's rows that its report shows: those with its command's settings (of
+    seed, repeats, reference, fd_step, estimators and a single particle count: the ones the
+    CSV has as columns; defaults where the command leaves a flag out) and the scenario it names
+    (any, for rows that predate content hashes)."""
     rows = pd.read_csv(stem + ".csv")
     text = read_text(stem + ".md")
-    flags = flag_values(report_command(stem + ".md", text)[1])
-    for column in ("repeats", "seed"):
-        if f"--{column}" in flags and column in rows:
-            rows = rows[rows[column] == int(flags[f"--{column}"])]
+    module, argv = report_command(stem + ".md", text)
+    tool = parse(importlib.import_module(module).Args, argv)
+    settings = {column: getattr(tool, attribute, None) for column, attribute in (
+        ("seed", "seed"), ("repeats", "repeats"), ("reference", "reference_name"), ("fd_step", "fd_step"),
+        ("estimators", "estimators"), ("particles", "particles"))}
+    for column, value in settings.items():
+        if column in rows and value is not None and (column != "particles" or isinstance(value, int)):
+            rows = rows[rows[column] == value]
     found = re.search(r"Content hash ([0-9a-f]+) \(", text)
     return rows[rows.scenario == found.group(1)] if found else rows
 
@@ -149,6 +155,9 @@ def compare_cells(committed: str, recomputed: str, flags: dict[str, str]) -> lis
     old, new = committed_rows(committed), pd.read_csv(recomputed + ".csv")
     rows = scenario_and_objective(committed + ".md", recomputed + ".md", new)
     keys = ["model", "estimator", "particles"] + (["delta_theta"] if "delta_theta" in new else [])
+    if old.duplicated(keys).any():
+        raise ValueError(f"{committed}.csv has several rows per cell {keys} at its report's settings: "
+                         "say which its report shows (committed_rows)")
     merged = old.merge(new, on=keys, suffixes=("_c", "_r"))
     if merged.empty:
         return rows + nothing_to_compare("cells")

@@ -67,6 +67,20 @@ def test_compare_cells_flags_a_changed_scenario_and_variance(tmp_path):
     assert not differ["variance: model gp, estimator rp, particles 10, delta_theta 0.0"]
 
 
+def test_committed_rows_are_those_of_the_report_s_reference(tmp_path):
+    """A compare CSV holds cells against two references (R30, then R100): the report's command
+    names one, and only its cells are compared (before, both were: every cell counted twice)."""
+    stem = str(tmp_path / "compare_cartpole")
+    pd.DataFrame(dict(task="cartpole", model="gp", estimator="rp", particles=10, repeats=20, seed=0, scenario="abc123",
+                      reference=["jax-lr-P1000-R30", "jax-lr-P1000-R100"], variance=[1.0, 2.0])
+                 ).to_csv(stem + ".csv", index=False)
+    with open(stem + ".md", "w") as f:
+        f.write("Command: `python -m harness.compare --task cartpole --repeats 20 --reference-repeats 100 --seed 0`\n"
+                "- Scenario: ... Content hash abc123 (theta0, ...)\n")
+    rows = reproduce.committed_rows(stem)
+    assert rows.reference.tolist() == ["jax-lr-P1000-R100"] and rows.variance.tolist() == [2.0]
+
+
 def test_unknown_check_is_refused():
     with pytest.raises(ValueError, match="unknown check"):
         reproduce.Args(checks="variance_cartpol")
