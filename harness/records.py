@@ -16,6 +16,16 @@ import jax
 import pandas as pd
 
 
+TEXT_COLUMNS = {"scenario": str}
+"""Columns read back as text: a content hash such as ``06172e414402`` would otherwise be read as
+a number (inf here) and match nothing."""
+
+
+def read_csv(path: str) -> pd.DataFrame:
+    """A results CSV, its ``TEXT_COLUMNS`` as text."""
+    return pd.read_csv(path, dtype=TEXT_COLUMNS)
+
+
 def save_pickle(obj: Any, path: str) -> None:
     """Pickle ``obj`` (its JAX arrays as numpy) to ``path`` atomically: the file, once there, is
     whole, even if the process dies while writing."""
@@ -59,7 +69,7 @@ class ResultTable:
     def read(self) -> pd.DataFrame:
         """Every row so far (an empty frame with the key columns if there is none)."""
         if os.path.exists(self.path):
-            return pd.read_csv(self.path)
+            return read_csv(self.path)
         return pd.DataFrame(columns=self.key_columns)
 
     def has(self, key: dict) -> bool:

@@ -47,6 +47,7 @@ from scipy import stats
 import tasks
 from harness import learn_report
 from harness.cli import parse, str_list
+from harness.records import read_csv
 
 
 class Check(NamedTuple):
@@ -130,7 +131,7 @@ def committed_rows(stem: str) -> pd.DataFrame:
     seed, repeats, reference, fd_step, estimators and a single particle count: the ones the
     CSV has as columns; defaults where the command leaves a flag out) and the scenario it names
     (any, for rows that predate content hashes)."""
-    rows = pd.read_csv(stem + ".csv")
+    rows = read_csv(stem + ".csv")
     text = read_text(stem + ".md")
     module, argv = report_command(stem + ".md", text)
     tool = parse(importlib.import_module(module).Args, argv)
@@ -152,7 +153,7 @@ def nothing_to_compare(what: str) -> list[dict]:
 def compare_cells(committed: str, recomputed: str, flags: dict[str, str]) -> list[dict]:
     """Scenario, J, and each recomputed cell's variance (and, in a compare report, cosine with
     the reference gradient) against the committed cell's."""
-    old, new = committed_rows(committed), pd.read_csv(recomputed + ".csv")
+    old, new = committed_rows(committed), read_csv(recomputed + ".csv")
     rows = scenario_and_objective(committed + ".md", recomputed + ".md", new)
     keys = ["model", "estimator", "particles"] + (["delta_theta"] if "delta_theta" in new else [])
     if old.duplicated(keys).any():
@@ -174,7 +175,7 @@ def compare_cells(committed: str, recomputed: str, flags: dict[str, str]) -> lis
 def compare_landscape(committed: str, recomputed: str, flags: dict[str, str]) -> list[dict]:
     """Scenario, J, and per recomputed delta: J, the finite-difference slope and each
     estimator's directional derivative against the committed ones."""
-    old, new = committed_rows(committed), pd.read_csv(recomputed + ".csv")
+    old, new = committed_rows(committed), read_csv(recomputed + ".csv")
     rows = scenario_and_objective(committed + ".md", recomputed + ".md", new)
     quantities = [("value", "value_ci"), ("fd_slope", "fd_slope_ci")] + [
         (f"{name}_grad", f"{name}_ci") for name in str_list(flags["--estimators"])]
@@ -197,7 +198,7 @@ def learn_command(stem: str, methods: str, repeats: int) -> tuple[list[str], pd.
     the committed table at ``stem`` (its task, cost, k, preset and task options), and the
     committed rows they should reproduce."""
     task, cost, k, preset = LEARN_STEM.search(os.path.basename(stem)).groups()
-    rows = pd.read_csv(stem + ".csv")
+    rows = read_csv(stem + ".csv")
     rows = rows[rows.method.isin(str_list(methods)) & (rows.repeat < repeats)]
     if rows.empty:
         raise ValueError(f"{stem}.csv has no rows of {methods} to reproduce")
@@ -213,10 +214,10 @@ def learn_command(stem: str, methods: str, repeats: int) -> tuple[list[str], pd.
 def compare_learning(committed: str, recomputed: str, flags: dict[str, str]) -> list[dict]:
     """Each recomputed run's final cost against the committed run of the same seed (same side
     of the committed threshold), and the committed rate inside the recomputed Wilson interval."""
-    everything = pd.read_csv(committed + ".csv")
+    everything = read_csv(committed + ".csv")
     final_all = learn_report.final_evaluations(everything)
     threshold = learn_report.otsu_threshold(final_all.eval_mean)
-    new = learn_report.final_evaluations(pd.read_csv(recomputed + ".csv"))
+    new = learn_report.final_evaluations(read_csv(recomputed + ".csv"))
     old = final_all[final_all.method.isin(new.method.unique())]
     keys = ["method", "repeat", "settings", "task_options"]
     merged = old.merge(new, on=keys, suffixes=("_c", "_r"))

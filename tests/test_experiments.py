@@ -138,6 +138,19 @@ def test_learning_time_measurement_runs(tmp_path):
     assert "paper-setting" in "\n".join(bench_learning.report_lines(table))
 
 
+def test_content_hashes_read_back_as_text(tmp_path):
+    """Hex hashes that look like numbers (``06172e414402``: 6.172e414402, inf) or lose a leading
+    zero must come back as written, or a rerun recomputes the cell and a report's
+    ``rows.scenario == content`` drops its rows."""
+    from harness.records import ResultTable
+
+    for content in ("06172e414402", "012345678901"):  # alone in their column, as in a fresh CSV
+        path = str(tmp_path / f"{content}.csv")
+        ResultTable(path, ["scenario"]).append(dict(scenario=content, variance=1.0))
+        table = ResultTable(path, ["scenario"])
+        assert table.read().scenario.tolist() == [content] and table.has(dict(scenario=content))
+
+
 def test_result_table_writes_rows_in_its_header_order_and_skips_written_keys(tmp_path):
     from harness.records import ResultTable
 
