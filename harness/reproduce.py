@@ -8,7 +8,8 @@ sizes listed in ``CHECKS``, into a fresh folder, then compares key numbers, comm
 recomputed, each by a stated rule:
 
 - scenario: the content hash of theta0, the direction and the GP posterior is equal (the
-  scenario was rebuilt bit for bit at float32 precision);
+  commands load the pinned scenario, so this checks the pinned file and the direction's draw;
+  a rebuild is not reproducible across machines);
 - a mean with a 95 % half-width (J, a slope, a directional derivative, a cosine): the two
   agree when ``|a - b| <= sqrt(ci_a^2 + ci_b^2)``, the 95 % interval of the difference of two
   independent means;
