@@ -166,6 +166,7 @@ def run(args: Args) -> tuple[pd.DataFrame, dict, scenario_lib.Setting]:
     table = ResultTable(args.stem + ".csv", KEY_COLUMNS)
     where = scenario_lib.setting(args, args.model)
     key = jax.random.fold_in(jax.random.key(args.seed), 3)
+    slice_key = jax.random.fold_in(jax.random.key(args.seed), 6)  # the value slices', apart from the rows'
     jitted = {name: jax.jit(estimators.make(name), static_argnums=3) for name in str_list(args.estimators)}
     jitted["returns"] = jax.jit(scenario_lib.particle_returns, static_argnums=3)
     for index, delta in enumerate(args.deltas):
@@ -187,7 +188,6 @@ def run(args: Args) -> tuple[pd.DataFrame, dict, scenario_lib.Setting]:
                f"box{args.box_stds:g}_{','.join(args.slice_names)}_delta{delta:g}"
         if name + "_values" not in stored:
             print(f"value slice at delta={delta:g} ({args.grid}x{args.grid} starts)", file=sys.stderr, flush=True)
-            slice_key = jax.random.fold_in(jax.random.key(args.seed), 6)  # apart from the rows' key (3)
             for part, array in value_slice(args, where, delta, slice_key).items():
                 stored[f"{name}_{part}"] = array
             np.savez(slices_path, **stored)

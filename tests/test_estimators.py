@@ -358,7 +358,7 @@ def cartpole_gp_problem(horizon: int | None = None):
     import tasks
     from models import gp
 
-    task = tasks.make("cartpole") if horizon is None else tasks.make("cartpole", horizon=horizon)
+    task = tasks.make("cartpole", **({} if horizon is None else {"horizon": horizon}))
     keys = jax.random.split(jax.random.key(7), 3)
     z = 0.8 * jax.random.normal(keys[0], (60, 4))
     u = jax.random.uniform(keys[1], (60, 1), minval=-10.0, maxval=10.0)
