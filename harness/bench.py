@@ -38,6 +38,7 @@ from harness.cli import int_list, parse, str_list
 from harness import bench_learning
 from harness.episodic import add_episode
 from harness.learn import DEFAULT_METHODS
+from harness.records import code_version
 from models import gp
 from tasks.rollout import run_episode
 
@@ -125,6 +126,7 @@ def time_estimator(estimator, problem, theta, num_particles: int, repeats: int) 
 
 def main(argv=None) -> None:
     args = parse(Args, argv)
+    version = code_version()  # the code loaded now, whatever is committed while this runs
     jax.config.update("jax_enable_x64", True)
     for name in str_list(args.estimators):
         estimators.make(name)
@@ -139,7 +141,7 @@ def main(argv=None) -> None:
         print(f"[{index + 1}/{len(cells)}] {name:7s} P={num_particles:5d}: {stats['median_s']:.3f} s "
               f"(compile {stats['compile_s']:.1f} s, peak {stats['peak_memory_mb']:.0f} MiB)",
               file=sys.stderr, flush=True)
-    table = pd.DataFrame(rows)
+    table = pd.DataFrame(rows).assign(code_version=version)
     os.makedirs(args.out, exist_ok=True)
     table.to_csv(os.path.join(args.out, "bench.csv"), index=False)
     learning = None
@@ -148,7 +150,7 @@ def main(argv=None) -> None:
                                           str_list(args.pseudo_input_learning_methods),
                                           str_list(args.fitc_learning_methods),
                                           str_list(args.fitc_float32_learning_methods), seed=args.seed)
-        learning.to_csv(os.path.join(args.out, "bench_learning.csv"), index=False)
+        learning.assign(code_version=version).to_csv(os.path.join(args.out, "bench_learning.csv"), index=False)
     write_report(args, table, rate, task, num_points, learning)
 
 

@@ -42,7 +42,7 @@ import tasks
 from estimators.base import task_problem
 from harness.cli import parse, str_list
 from harness.episodic import RunState, evaluate_policy, in_precision, learning_run, policy_optimiser
-from harness.records import ResultTable, load_pickle, save_pickle
+from harness.records import ResultTable, code_version, load_pickle, save_pickle
 from models import gp
 
 METHODS = {
@@ -219,7 +219,8 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     num_trials = task.num_random_trials + settings["learned_trials"]
     checkpoint = checkpoint_path(args, method, repeats)
     saved = load_pickle(checkpoint) or dict(state=None, rows=[])
-    rows, resume = saved["rows"], saved["state"]
+    # a checkpoint's rows carry the code that ran them (blank where it predates the column)
+    rows, resume = [{"code_version": "", **row} for row in saved["rows"]], saved["state"]
     if resume is not None:
         print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: resuming after trial {resume.trials_done}/{num_trials}"
               f" ({checkpoint})", file=sys.stderr, flush=True)
@@ -239,7 +240,8 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
             rows.append(dict(repeat=repeat, trial=record.trial, learned=record.learned,
                              trial_return=float(returns[i]), eval_mean=float(scores[i].mean()),
                              eval_std=float(scores[i].std(ddof=1)) if scores.shape[1] > 1 else np.nan,
-                             data_points=int(num_valid[i]), nonfinite_steps=float(nonfinite[i]), seconds=seconds))
+                             data_points=int(num_valid[i]), nonfinite_steps=float(nonfinite[i]), seconds=seconds,
+                             code_version=code_version()))
         save_pickle(dict(state=RunState(record.trial + 1, record.theta, data), rows=rows), checkpoint)
         evaluation = f", evaluation mean {scores.mean():.2f}" if record.learned else ""
         if np.nansum(nonfinite) > 0:

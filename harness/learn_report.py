@@ -29,7 +29,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-Z95 = 1.96
+Z95 = float(stats.norm.ppf(0.975))
+"""1.95996...: the two-sided 95 % normal quantile of the Wilson interval."""
 ALPHA = 0.05
 """Level of the two-sided tests behind "significant" in the orderings."""
 ROBUSTNESS = 0.1
@@ -185,8 +186,16 @@ THRESHOLD_KEYS = ["task", "cost", "scale"]
 
 
 def otsu_thresholds(final: pd.DataFrame) -> dict:
-    """Otsu's threshold of the pooled final evaluation costs per (task, cost, scale), every k and method."""
-    return {key: otsu_threshold(group.eval_mean) for key, group in final.groupby(THRESHOLD_KEYS)}
+    """Otsu's threshold of the pooled final evaluation costs per (task, cost, scale), every k and method
+    but those of ``INVALID_METHODS`` (kept for the record, they must not move the valid rates' cut),
+    unless a group holds nothing else (a file of superseded runs is cut on its own costs)."""
+    return {key: otsu_threshold(pooled_costs(group)) for key, group in final.groupby(THRESHOLD_KEYS)}
+
+
+def pooled_costs(group: pd.DataFrame) -> np.ndarray:
+    """The final costs of one threshold group that make its cut (``otsu_thresholds``)."""
+    valid = group[~group.method.isin(list(INVALID_METHODS))]
+    return (valid if len(valid) else group).eval_mean.to_numpy()
 
 
 def threshold_name(key: tuple) -> str:
@@ -278,9 +287,10 @@ def cell_name(key: tuple) -> str:
     return f"{key[0]}, {key[1]}, k = {key[2]:g}, {key[3]}"
 
 
-def changes(values: pd.DataFrame) -> list[str]:
-    """'cell: v1 / v2 / v3' for every row of ``values`` (cells x scales) whose value differs between scales."""
-    return [f"{cell_name(key)}: {' / '.join(map(str, row))}" for key, row in values.iterrows() if row.nunique() > 1]
+def changes(values: pd.DataFrame, shown=str) -> list[str]:
+    """'cell: v1 / v2 / v3' (each value as ``shown`` writes it) for every row of ``values`` (cells x
+    scales) whose value differs between scales."""
+    return [f"{cell_name(key)}: {' / '.join(map(shown, row))}" for key, row in values.iterrows() if row.nunique() > 1]
 
 
 def ordering_changes(rates: pd.DataFrame) -> list[str]:
@@ -306,7 +316,7 @@ def robustness_lines(at: dict[float, pd.DataFrame], thresholds: dict) -> list[st
     lines += [f"- Thresholds for {threshold_name(key)}: " + " / ".join(f"{scale * t:.3f}" for scale in SCALES)
               for key, t in thresholds.items()]
     rates = pd.concat({scale: cells.rate for scale, cells in at.items()}, axis=1)
-    found = {"Rates that change (flips)": changes(rates.map("{:.2f}".format)),
+    found = {"Rates that change (flips)": changes(rates, "{:.2f}".format),
              "Orderings between methods (INVALID ones left out) that change": ordering_changes(rates),
              "Inside/outside verdicts against the paper that change": changes(
                  pd.concat({scale: cells.inside for scale, cells in at.items()}, axis=1))}
@@ -366,6 +376,16 @@ def missing(present, methods) -> str:
     return f"not measured (no {', '.join(absent)} rows)" if absent else ""
 
 
+def partial(present, own: tuple[str, ...]) -> str:
+    """'partial, GR and GR_FS not measured: ' where a method of ``PAPER_METHODS`` (other than the
+    claim's ``own``) is not among ``present``: the claim is then judged against the others only."""
+    absent = [m.upper() for m in PAPER_METHODS if m not in set(present) and m not in own]
+    if not absent:
+        return ""
+    names = absent[0] if len(absent) == 1 else ", ".join(absent[:-1]) + " and " + absent[-1]
+    return f"partial, {names} not measured: "
+
+
 def claim_tp_not_below_pilco(group: pd.DataFrame) -> str:
     """Claim (a), TP >= PILCO at k = 1, in one (task, cost, options) group of ``success_rows``."""
     cell = group[group.k == 1.0].set_index("method", drop=False)
@@ -402,7 +422,8 @@ def claim_lr_tp_degrade_least(group: pd.DataFrame) -> str:
     drops = {m: relative_drop(first.loc[m].rate, last.loc[m].rate) for m in ["lr", "tp", *others]}
     listed = ", ".join(f"{m.upper()} {'-' if np.isnan(drop) else f'{drop:.2f}'}" for m, drop in drops.items())
     dash = "; -: no success to lose" if any(np.isnan(drop) for drop in drops.values()) else ""
-    header = f"relative drop in rate (1 - rate at k = {ks[-1]:g} / rate at k = {ks[0]:g}{dash}): {listed}"
+    header = (f"{partial(both, ('lr', 'tp'))}relative drop in rate (1 - rate at k = {ks[-1]:g} / rate at "
+              f"k = {ks[0]:g}{dash}): {listed}")
     if nothing := [m.upper() for m in ("lr", "tp") if np.isnan(drops[m])]:
         return f"{header}: undecided ({' and '.join(nothing)} had no success at k = {ks[0]:g})"
     others = [m for m in others if not np.isnan(drops[m])]
@@ -431,8 +452,8 @@ def claim_rp_fs_worst(cell: pd.DataFrame) -> str:
     rp_fs, lowest = cell.loc["rp_fs"], cell.loc[others].rate.idxmin()
     comparisons = {f"RP_FS vs {m.upper()}": (fisher_p(rp_fs, cell.loc[m]), rp_fs.rate <= cell.loc[m].rate)
                    for m in others}
-    return f"{rate_text(rp_fs)} vs the lowest other, {rate_text(cell.loc[lowest])}: " + verdict(
-        comparisons, "two-sided Fisher exact")
+    return (f"{partial(cell.index, ('rp_fs',))}{rate_text(rp_fs)} vs the lowest other, "
+            f"{rate_text(cell.loc[lowest])}: " + verdict(comparisons, "two-sided Fisher exact"))
 
 
 def ordering_lines(success: pd.DataFrame) -> list[str]:
@@ -500,10 +521,12 @@ def threshold_lines(final: pd.DataFrame, thresholds: dict) -> list[str]:
     to find) and the sorted pooled final costs."""
     lines = []
     for key, group in final.groupby(THRESHOLD_KEYS):
-        threshold, pooled = thresholds[key], group.eval_mean.to_numpy()
+        threshold, pooled = thresholds[key], pooled_costs(group)
         values = np.sort(pooled[np.isfinite(pooled)])
         diverged = (f"; {len(pooled) - len(values)} non-finite final costs, failures at any cut, are not pooled"
                     if len(values) < len(pooled) else "")
+        if invalid := len(group) - len(pooled):
+            diverged += f"; the {invalid} final costs of INVALID runs are not pooled"
         low, high = values[values < threshold], values[values >= threshold]
         separation = np.nan  # one group is empty where every run is on the same side of the cut
         if len(low) and len(high):
@@ -517,6 +540,14 @@ def threshold_lines(final: pd.DataFrame, thresholds: dict) -> list[str]:
                      f"failed runs; below it the rates depend on an arbitrary cut{diverged}). Sorted: "
                      f"{', '.join(f'{v:.2f}' for v in values)}.")
     return lines
+
+
+def invalid_lines(final: pd.DataFrame) -> list[str]:
+    """A line per method of ``INVALID_METHODS`` in ``final``: why it is invalid, and whether its
+    costs took part in the threshold (only in a file of invalid runs alone: ``pooled_costs``)."""
+    alone = final.method.isin(list(INVALID_METHODS)).all()
+    pool = "the threshold is cut on these invalid costs alone" if alone else "its costs not in the threshold's pool"
+    return [f"- `{m}`: INVALID ({pool}), {why}." for m, why in INVALID_METHODS.items() if m in set(final.method)]
 
 
 def with_curve_labels(frame: pd.DataFrame, several_k: bool) -> pd.DataFrame:
@@ -570,7 +601,7 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
              *threshold_lines(final, thresholds), "", *incomplete_lines(learned), *nonfinite_lines(learned), "",
              "Success rate [Wilson 95 % interval] n = repeats (the paper's rate, 100 repeats):", "",
              table.reset_index().to_markdown(index=False), "",
-             *[f"- `{m}`: INVALID, {why}." for m, why in INVALID_METHODS.items() if m in set(final.method)],
+             *invalid_lines(final),
              "", *paper_comparison_lines(rows, thresholds), "", *compute_lines(rows),
              "", f"![learning curves]({os.path.basename(stem)}.png)", "",
              f"Mean evaluation cost after each learned trial (mean over repeats, per {per}):", "",

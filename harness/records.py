@@ -8,8 +8,11 @@ the end (a batch of learning runs) save their state between steps with ``save_pi
 
 from __future__ import annotations
 
+import functools
 import os
 import pickle
+import subprocess
+from importlib import metadata
 from typing import Any
 
 import jax
@@ -19,6 +22,34 @@ import pandas as pd
 TEXT_COLUMNS = {"scenario": str}
 """Columns read back as text: a content hash such as ``06172e414402`` would otherwise be read as
 a number (inf here) and match nothing."""
+
+
+CODE_PACKAGES = ("numerics", "tasks", "models", "estimators", "harness")
+"""The folders whose code computes results (pyproject's packages): a change there makes a row's numbers another
+version's."""
+
+
+@functools.cache
+def code_version() -> str:
+    """The code this process runs, as written into every result row's ``code_version``: the checkout's git commit
+    (``a1b2c3d``; ``a1b2c3d-dirty`` when the code folders hold uncommitted changes), or the installed package's
+    version where the code is not a git checkout.
+    Cached at the first call (``ResultTable`` makes it when an experiment starts): the code a process loaded is
+    the code it runs, whatever is committed later."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if os.path.exists(os.path.join(root, ".git")):  # a folder, or a file in a git worktree
+        try:
+            commit = subprocess.run(["git", "-C", root, "rev-parse", "--short", "HEAD"], capture_output=True,
+                                    text=True, check=True, timeout=30).stdout.strip()
+            changed = subprocess.run(["git", "-C", root, "status", "--porcelain", "--untracked-files=no", "--",
+                                      *CODE_PACKAGES], capture_output=True, text=True, check=True, timeout=30)
+            return commit + ("-dirty" if changed.stdout.strip() else "")
+        except (OSError, subprocess.SubprocessError):
+            pass
+    try:
+        return "pipps-harness " + metadata.version("pipps-harness")
+    except metadata.PackageNotFoundError:
+        return "unknown"
 
 
 def read_csv(path: str) -> pd.DataFrame:
@@ -45,20 +76,26 @@ def load_pickle(path: str) -> Any:
 
 class ResultTable:
     """The CSV at ``path``, keyed by ``key_columns``. Counts the rows this run found already
-    written (``has``) and the ones it wrote (``append``): ``summary()`` says so."""
+    written (``has``) and the ones it wrote (``append``): ``summary()`` says so. Every row it
+    writes carries ``code_version`` (unless the row brings its own), which is not part of the key:
+    a rerun after a code change reuses the old rows, and this column says which code made them."""
 
     def __init__(self, path: str, key_columns: list[str]):
         self.path = path
         self.key_columns = list(key_columns)
         os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-        existing = self.read()
-        self._columns = list(existing.columns) if os.path.exists(path) else None
-        self._done = {self._key(row) for row in existing.to_dict("records")}
+        self._done = {self._key(row): row.get("code_version") for row in self.read().to_dict("records")}
         self.reused = self.computed = 0
+        self._reused_versions: set[str] = set()
+        code_version()  # fixed now, while the code this process loaded is the checkout's
 
     def summary(self) -> str:
-        """"computed N cells, reused M from PATH"."""
-        return f"computed {self.computed} cells, reused {self.reused} from {self.path}"
+        """"computed N cells, reused M from PATH", and the code that wrote the reused rows where it is not this
+        run's (a code change since then may have changed their numbers: delete such rows to recompute them)."""
+        text = f"computed {self.computed} cells, reused {self.reused} from {self.path}"
+        if others := sorted(self._reused_versions - {code_version()}):
+            text += f" (written by code {', '.join(others)}; this run's is {code_version()})"
+        return text
 
     def _key(self, row: dict) -> tuple[str, ...]:
         missing = [c for c in self.key_columns if c not in row]
@@ -74,7 +111,10 @@ class ResultTable:
 
     def has(self, key: dict) -> bool:
         """Whether a row with these key values is already written (counted as reused)."""
-        found = self._key(key) in self._done
+        found = (cell := self._key(key)) in self._done
+        if found:
+            version = self._done[cell]  # NaN or "" in rows written before the column existed
+            self._reused_versions.add(version if isinstance(version, str) and version else "unrecorded")
         self.reused += found
         return found
 
@@ -86,20 +126,22 @@ class ResultTable:
         """Write ``rows`` now, in one append (the header with the first rows; later rows in the
         header's column order, whatever the order of their keys). Rows with columns the file lacks
         (written by an older version) add them, empty in the older rows; a row lacking a column of
-        the file's or of another row's is an error, and nothing is written."""
+        the file's or of another row's is an error, and nothing is written. The header is read at
+        each append, so two processes may append to one file."""
         if not rows:
             return
+        rows = [{**row, "code_version": row.get("code_version", code_version())} for row in rows]
         names = list(dict.fromkeys(name for row in rows for name in row))
-        known = self._columns or []
+        written = os.path.exists(self.path) and os.path.getsize(self.path) > 0
+        known = list(pd.read_csv(self.path, nrows=0).columns) if written else []
         columns = known + [name for name in names if name not in known]
         if lacking := [row for row in rows if set(columns) - set(row)]:
             raise ValueError(f"row columns {sorted(lacking[0])} lack {sorted(set(columns) - set(lacking[0]))} "
                              f"of {self.path}'s or of the other rows'; write these results to another --out folder")
-        if self._columns is not None and columns != self._columns:
+        if known and columns != known:
             self.read().reindex(columns=columns).to_csv(self.path, index=False)
-        self._columns = columns
-        text = pd.DataFrame(rows)[self._columns].to_csv(index=False, header=not os.path.exists(self.path))
+        text = pd.DataFrame(rows)[columns].to_csv(index=False, header=not known)
         with open(self.path, "a") as f:
             f.write(text)
-        self._done.update(self._key(row) for row in rows)
+        self._done.update((self._key(row), row["code_version"]) for row in rows)
         self.computed += len(rows)

@@ -159,13 +159,14 @@ def test_result_table_writes_rows_in_its_header_order_and_skips_written_keys(tmp
     table = ResultTable(path, ["cell"])  # a rerun
     assert table.has(dict(cell="a")) and not table.has(dict(cell="b"))
     table.extend([dict(seconds=4.0, cell="b", variance=3.5), dict(cell="e", variance=0.5, seconds=1.0)])  # key order
-    assert pd.read_csv(path).to_dict("list") == dict(cell=["a", "b", "e"], variance=[1.5, 3.5, 0.5],
-                                                     seconds=[2.0, 4.0, 1.0])
+    assert pd.read_csv(path).drop(columns="code_version").to_dict("list") == dict(
+        cell=["a", "b", "e"], variance=[1.5, 3.5, 0.5], seconds=[2.0, 4.0, 1.0])
     with pytest.raises(ValueError, match="another --out folder"):
         table.append(dict(cell="c", variance=1.0))
     table.append(dict(cell="d", variance=1.0, seconds=1.0, scenario="abc"))  # a newer version's column
     rows = pd.read_csv(path)
-    assert list(rows.columns) == ["cell", "variance", "seconds", "scenario"] and list(rows.cell) == ["a", "b", "e", "d"]
+    assert list(rows.columns) == ["cell", "variance", "seconds", "code_version", "scenario"]
+    assert list(rows.cell) == ["a", "b", "e", "d"]
     assert rows.scenario.isna().tolist() == [True, True, True, False]
     assert table.summary() == f"computed 3 cells, reused 1 from {path}"
     with pytest.raises(ValueError, match="other rows"):  # one row of a batch lacks the batch's new column
@@ -175,6 +176,33 @@ def test_result_table_writes_rows_in_its_header_order_and_skips_written_keys(tmp
     assert pd.read_csv(path).equals(rows)  # neither wrote anything
     ResultTable(str(tmp_path / "new.csv"), ["cell"]).extend([])
     assert not (tmp_path / "new.csv").exists()
+
+
+def test_result_rows_say_which_code_wrote_them(tmp_path, monkeypatch):
+    """Every row carries the code version of the process that wrote it (a row may bring its own:
+    a learning batch's trials ran under the code of their own session); a rerun by other code
+    says so; two processes that append to one file keep its columns aligned, whatever each of
+    them saw when it opened the file."""
+    from harness import records
+
+    version = records.code_version()
+    assert version and version != "unknown"  # a git checkout, or the installed package's version
+    path = str(tmp_path / "table.csv")
+    first, second = records.ResultTable(path, ["cell"]), records.ResultTable(path, ["cell"])
+    first.append(dict(cell="a", variance=1.0))
+    second.extend([dict(cell="b", variance=2.0, seconds=3.0), dict(cell="c", variance=4.0, seconds=5.0,
+                                                                    code_version="older")])
+    first.append(dict(variance=6.0, cell="d", seconds=7.0))  # opened before `second` added `seconds`
+    rows = pd.read_csv(path)
+    assert list(rows.columns) == ["cell", "variance", "code_version", "seconds"]
+    assert rows.cell.tolist() == ["a", "b", "c", "d"] and rows.variance.tolist() == [1.0, 2.0, 4.0, 6.0]
+    assert rows.code_version.tolist() == [version, version, "older", version]
+    assert rows.seconds.isna().tolist() == [True, False, False, False] and rows.seconds.tolist()[1:] == [3.0, 5.0, 7.0]
+    rerun = records.ResultTable(path, ["cell"])
+    assert rerun.has(dict(cell="a")) and rerun.summary().endswith(f"reused 1 from {path}")
+    assert rerun.has(dict(cell="c")) and f"(written by code older; this run's is {version})" in rerun.summary()
+    monkeypatch.setattr(records, "code_version", lambda: "newer")  # the code changed since the rows were written
+    assert f"(written by code {', '.join(sorted(['older', version]))}; this run's is newer)" in rerun.summary()
 
 
 def test_alignment_statistics_on_known_cases():

@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import learn, learn_report
+from harness import learn, learn_report, records
 
 TINY = ["--repeats", "3", "--batch", "2", "--learned-trials", "1", "--optimiser-steps", "2", "--particles", "4", "--eval-runs", "2",
         "--pilco-steps", "2", "--gp-steps", "3"]
@@ -69,6 +69,10 @@ def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_p
     assert not (out / "learn_cartpole_angle_k1_quick.csv").exists()
     assert len(list(carried.iterdir())) == 1 and not (out / ".cache" / "learn").exists()
     monkeypatch.setattr(learn, "evaluate_policy", real)
+    [checkpoint] = carried.iterdir()  # as one written before rows carried their code version
+    saved = records.load_pickle(str(checkpoint))
+    records.save_pickle(dict(saved, rows=[{n: v for n, v in r.items() if n != "code_version"} for r in saved["rows"]]),
+                        str(checkpoint))
     capsys.readouterr()
     learn.main(argv + ["--out", str(out)])
     progress = capsys.readouterr().err
@@ -76,6 +80,10 @@ def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_p
     resumed = pd.read_csv(out / "learn_cartpole_angle_k1_quick.csv")
     columns = ["repeat", "trial", "learned", "trial_return", "eval_mean", "data_points"]
     pd.testing.assert_frame_equal(resumed[columns], whole[columns], check_exact=False, rtol=1e-9)
+    # each trial's row names the code that ran it: unrecorded (blank) for the trials of the old checkpoint
+    assert (whole.code_version == records.code_version()).all()
+    assert resumed.code_version.isna().tolist() == (resumed.trial < 2).tolist()
+    assert (resumed.code_version[resumed.trial == 2] == records.code_version()).all()
     assert not list(carried.iterdir())  # the checkpoint is gone with its rows in the table
 
 

@@ -36,7 +36,8 @@ def test_the_papers_rate_is_inside_or_outside_the_wilson_interval():
     success = learn_report.success_rows(rows_of({**wins("tp", 7), **wins("pilco", 7), **wins("lr_plain", 7)}))
     by_method = success.set_index("method")
     assert list(success.method) == ["pilco", "lr_plain", "tp"]  # the paper's column order
-    # 7 of 10, by hand: centre (0.7 + 1.96^2/20) / (1 + 1.96^2/10) = 0.64449,
+    # 7 of 10, by hand (z = 1.96; the report's exact 1.959964 moves the ends by 7e-6):
+    # centre (0.7 + 1.96^2/20) / (1 + 1.96^2/10) = 0.64449,
     # half width 1.96 sqrt(0.7 * 0.3 / 10 + 1.96^2 / 400) / (1 + 1.96^2/10) = 0.24772
     assert by_method.loc["tp", "low"] == pytest.approx(0.64449 - 0.24772, abs=1e-4)
     assert by_method.loc["tp", "high"] == pytest.approx(0.64449 + 0.24772, abs=1e-4)
@@ -114,7 +115,8 @@ def test_degradation_and_worst_method_claims():
     finals = {**wins("lr", 9), **wins("tp", 9), **wins("pilco", 9), **wins("rp", 9),
               **wins("lr", 8, k=16.0), **wins("tp", 8, k=16.0), **wins("pilco", 1, k=16.0), **wins("rp", 0, k=16.0)}
     assert orderings(finals)[1] == (
-        "- (b) LR and TP degrade least as k grows (cartpole, angle): relative drop in rate (1 - rate at k = 16 / rate "
+        "- (b) LR and TP degrade least as k grows (cartpole, angle): partial, RP_FS, GR and GR_FS not measured: "
+        "relative drop in rate (1 - rate at k = 16 / rate "
         "at k = 1): LR 0.11, TP 0.11, PILCO 0.89, RP 1.00: holds on the point estimates; significant at 0.05 "
         "(two-sided Wald test of equal log ratios, Agresti-Caffo adjusted, p = 0.0296, the largest of 4: LR vs "
         "PILCO).")  # log(9/10) - log(2/10) = 1.504 over sd sqrt(1/60 + 1/36 + 1/60 + 5/12) = 0.6912: z = 2.176
@@ -122,7 +124,10 @@ def test_degradation_and_worst_method_claims():
     lines = orderings(finals)
     assert "RP_FS 1.00: holds on the point estimates; not significant at 0.05, so undecided" in lines[1]
     assert lines[1].endswith("the largest of 6: LR vs RP_FS).")
-    assert lines[2] == ("- (c) RP_FS is the worst method (cartpole, angle, k = 1): RP_FS 0.30 [0.11, 0.60] n=10 vs "
+    assert lines[1].startswith("- (b) LR and TP degrade least as k grows (cartpole, angle): partial, GR and GR_FS "
+                               "not measured: relative drop")
+    assert lines[2] == ("- (c) RP_FS is the worst method (cartpole, angle, k = 1): partial, GR and GR_FS not measured: "
+                        "RP_FS 0.30 [0.11, 0.60] n=10 vs "
                         "the lowest other, PILCO 0.90 [0.60, 0.98] n=10: holds on the point estimates; significant at "
                         "0.05 (two-sided Fisher exact p = 0.0198, the largest of 4: RP_FS vs PILCO).")
     assert "holds on the point estimates; not significant at 0.05, so undecided" in lines[3]  # k = 16: RP_FS = RP = 0
@@ -130,6 +135,34 @@ def test_degradation_and_worst_method_claims():
     equal = learn_report.retained_fraction_p(*(success.loc[key] for key in [("lr", 1.0), ("lr", 16.0),
                                                                           ("tp", 1.0), ("tp", 16.0)]))
     assert equal == pytest.approx(1.0)
+
+
+def test_claims_name_the_missing_methods_of_the_paper_and_are_whole_without_them():
+    every = {key: value for m in learn_report.PAPER_METHODS for key, value in wins(m, 9).items()}
+    every.update(wins("rp_fs", 2))
+    whole = orderings(every)[2]
+    assert whole.startswith("- (c) RP_FS is the worst method (cartpole, angle, k = 1): RP_FS 0.20 [0.06, 0.51] n=10")
+    assert "partial" not in whole and "significant at 0.05" in whole
+    present = ["rp_fs", "tp", "pilco", "rp", "gr", "lr"]
+    assert learn_report.partial(present, ("rp_fs",)) == "partial, GR_FS not measured: "
+
+
+def test_invalid_runs_take_no_part_in_the_threshold():
+    """TP's costs alone cut at 10.5 (5 of 10 learned); ten invalid runs at 30 would pull Otsu's cut
+    to 23 (TP 10 of 10) if they were pooled. A file of invalid runs alone is cut on its own costs."""
+    tp = {("tp", 1.0): [5.0] * 5 + [16.0] * 5}
+    invalid = {("gr_xi_eq_eps", 1.0): [30.0] * 10}
+    assert learn_report.otsu_threshold(np.array(tp["tp", 1.0] + invalid["gr_xi_eq_eps", 1.0])) == 23.0
+    success = learn_report.success_rows(rows_of({**tp, **invalid})).set_index("method")
+    assert success.loc["tp", "wins"] == 5 and success.loc["gr_xi_eq_eps", "wins"] == 0
+    final = learn_report.final_evaluations(rows_of({**tp, **invalid}))
+    assert learn_report.otsu_thresholds(final) == {("cartpole", "angle", ""): 10.5}
+    line = learn_report.threshold_lines(final, {("cartpole", "angle", ""): 10.5})[0]
+    assert "the 10 final costs of INVALID runs are not pooled" in line and "cut of the 10 pooled" in line
+    assert learn_report.invalid_lines(final)[0].startswith("- `gr_xi_eq_eps`: INVALID (its costs not in the")
+    alone = learn_report.final_evaluations(rows_of({("gr_xi_eq_eps", 1.0): [5.0] * 5 + [16.0] * 5}))
+    assert learn_report.otsu_thresholds(alone) == {("cartpole", "angle", ""): 10.5}
+    assert "cut on these invalid costs alone" in learn_report.invalid_lines(alone)[0]
 
 
 def test_the_report_carries_the_comparison_with_the_paper(tmp_path):
