@@ -9,10 +9,10 @@ the end (a batch of learning runs) save their state between steps with ``save_pi
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
 import pickle
 import subprocess
-from importlib import metadata
 from typing import Any
 
 import jax
@@ -24,32 +24,47 @@ TEXT_COLUMNS = {"scenario": str}
 a number (inf here) and match nothing."""
 
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+"""The repository (or installation) root: the folder of the code packages."""
 CODE_PACKAGES = ("numerics", "tasks", "models", "estimators", "harness")
-"""The folders whose code computes results (pyproject's packages): a change there makes a row's numbers another
-version's."""
+"""The folders whose code computes results (pyproject's packages)."""
+
+
+def source_digest(entries: tuple[str, ...]) -> str:
+    """A hash (12 hex digits) of the source files (``.py``, ``.xml``) of ``entries``, packages or
+    modules relative to ``ROOT``: their names and bytes, in sorted order."""
+    files = []
+    for entry in entries:
+        path = os.path.join(ROOT, entry)
+        if os.path.isdir(path):
+            files += [os.path.join(path, name) for name in os.listdir(path) if name.endswith((".py", ".xml"))]
+        else:
+            files.append(path)
+    digest = hashlib.sha256()
+    for path in sorted(files):
+        digest.update(os.path.relpath(path, ROOT).encode())
+        with open(path, "rb") as f:
+            digest.update(f.read())
+    return digest.hexdigest()[:12]
 
 
 @functools.cache
 def code_version() -> str:
     """The code this process runs, as written into every result row's ``code_version``: the checkout's git commit
-    (``a1b2c3d``; ``a1b2c3d-dirty`` when the code folders hold uncommitted changes), or the installed package's
-    version where the code is not a git checkout.
+    (``a1b2c3d``; ``a1b2c3d-dirty`` when the code packages hold uncommitted changes), or, where the code is not a
+    git checkout, ``source a1b2c3d4e5f6``, the ``source_digest`` of the code packages.
     Cached at the first call (``ResultTable`` makes it when an experiment starts): the code a process loaded is
     the code it runs, whatever is committed later."""
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    if os.path.exists(os.path.join(root, ".git")):  # a folder, or a file in a git worktree
+    if os.path.exists(os.path.join(ROOT, ".git")):  # a folder, or a file in a git worktree
         try:
-            commit = subprocess.run(["git", "-C", root, "rev-parse", "--short", "HEAD"], capture_output=True,
+            commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True,
                                     text=True, check=True, timeout=30).stdout.strip()
-            changed = subprocess.run(["git", "-C", root, "status", "--porcelain", "--untracked-files=no", "--",
+            changed = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "--untracked-files=no", "--",
                                       *CODE_PACKAGES], capture_output=True, text=True, check=True, timeout=30)
             return commit + ("-dirty" if changed.stdout.strip() else "")
         except (OSError, subprocess.SubprocessError):
             pass
-    try:
-        return "pipps-harness " + metadata.version("pipps-harness")
-    except metadata.PackageNotFoundError:
-        return "unknown"
+    return "source " + source_digest(CODE_PACKAGES)
 
 
 def read_csv(path: str) -> pd.DataFrame:

@@ -39,7 +39,7 @@ import estimators
 import tasks
 from estimators.base import Problem, draw_noise, per_particle, rollout, task_problem, theta_dtype
 from harness.episodic import learning_run, policy_optimiser
-from harness.records import load_pickle, save_pickle
+from harness.records import ROOT, load_pickle, save_pickle, source_digest
 from models import gp
 from models.simulator import SimulatorModel
 from tasks.base import Task
@@ -118,27 +118,14 @@ def build(args: ScenarioArgs) -> Scenario:
     return Scenario(data, posterior, theta, np.asarray(returns))
 
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENARIO_CODE = ("numerics", "tasks", "models", "estimators", "harness/episodic.py", "harness/optim.py",
                  "harness/scenario.py")
 """The code a scenario's theta0 and GP depend on (packages and modules, relative to the root)."""
 
 
 def code_digest() -> str:
-    """A hash of the source files of ``SCENARIO_CODE`` (names and bytes, in sorted order)."""
-    files = []
-    for entry in SCENARIO_CODE:
-        path = os.path.join(ROOT, entry)
-        if os.path.isdir(path):
-            files += [os.path.join(path, name) for name in os.listdir(path) if name.endswith((".py", ".xml"))]
-        else:
-            files.append(path)
-    digest = hashlib.sha256()
-    for path in sorted(files):
-        digest.update(os.path.relpath(path, ROOT).encode())
-        with open(path, "rb") as f:
-            digest.update(f.read())
-    return digest.hexdigest()[:12]
+    """A hash of the source files of ``SCENARIO_CODE`` (``records.source_digest``)."""
+    return source_digest(SCENARIO_CODE)
 
 
 PINNED_DIR = os.path.join(ROOT, "scenarios")

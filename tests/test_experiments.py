@@ -205,6 +205,19 @@ def test_result_rows_say_which_code_wrote_them(tmp_path, monkeypatch):
     assert f"(written by code {', '.join(sorted(['older', version]))}; this run's is newer)" in rerun.summary()
 
 
+def test_code_outside_a_git_checkout_is_named_by_its_source_digest(tmp_path, monkeypatch):
+    from harness import records
+
+    for package in records.CODE_PACKAGES:
+        (tmp_path / package).mkdir()
+        (tmp_path / package / "module.py").write_text(f"NAME = {package!r}\n")
+    monkeypatch.setattr(records, "ROOT", str(tmp_path))  # an installation without .git
+    before = records.code_version.__wrapped__()  # uncached
+    assert before == "source " + records.source_digest(records.CODE_PACKAGES) and len(before) == len("source ") + 12
+    (tmp_path / "models" / "module.py").write_text("NAME = 'changed'\n")
+    assert records.code_version.__wrapped__() != before
+
+
 def test_alignment_statistics_on_known_cases():
     from harness.compare import alignment
 
