@@ -29,6 +29,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from harness.records import read_csv
+
 Z95 = float(stats.norm.ppf(0.975))
 """1.95996...: the two-sided 95 % normal quantile of the Wilson interval."""
 ALPHA = 0.05
@@ -630,7 +632,7 @@ def main(argv=None) -> None:
     if len(args.paths) > 1 and args.out is None:
         parser.error("several CSVs need --out STEM (where to write the pooled report)")
     stem = args.out or args.paths[0][:-4]
-    rows = pd.concat([pd.read_csv(path) for path in args.paths], ignore_index=True)
+    rows = pd.concat([read_csv(path) for path in args.paths], ignore_index=True)
     mixed = rows.groupby(["method", "task_options"]).settings.nunique()
     if (mixed > 1).any():
         raise SystemExit(f"{' '.join(args.paths)} hold several settings for {list(mixed[mixed > 1].index)}: a rate "

@@ -19,9 +19,9 @@ import jax
 import pandas as pd
 
 
-TEXT_COLUMNS = {"scenario": str}
-"""Columns read back as text: a content hash such as ``06172e414402`` would otherwise be read as
-a number (inf here) and match nothing."""
+TEXT_COLUMNS = {"scenario": str, "code_version": str}
+"""Columns read back as text: a content hash such as ``06172e414402`` or a commit such as
+``1e23456`` would otherwise be read as a number (inf here) and match nothing."""
 
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -51,7 +51,8 @@ def source_digest(entries: tuple[str, ...]) -> str:
 @functools.cache
 def code_version() -> str:
     """The code this process runs, as written into every result row's ``code_version``: the checkout's git commit
-    (``a1b2c3d``; ``a1b2c3d-dirty`` when the code packages hold uncommitted changes), or, where the code is not a
+    (``a1b2c3d``; ``a1b2c3d-dirty`` when the code packages hold uncommitted changes or new
+    files), or, where the code is not a
     git checkout, ``source a1b2c3d4e5f6``, the ``source_digest`` of the code packages.
     Cached at the first call (``ResultTable`` makes it when an experiment starts): the code a process loaded is
     the code it runs, whatever is committed later."""
@@ -59,7 +60,7 @@ def code_version() -> str:
         try:
             commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True,
                                     text=True, check=True, timeout=30).stdout.strip()
-            changed = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "--untracked-files=no", "--",
+            changed = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "--",
                                       *CODE_PACKAGES], capture_output=True, text=True, check=True, timeout=30)
             return commit + ("-dirty" if changed.stdout.strip() else "")
         except (OSError, subprocess.SubprocessError):
@@ -120,7 +121,7 @@ class ResultTable:
 
     def read(self) -> pd.DataFrame:
         """Every row so far (an empty frame with the key columns if there is none)."""
-        if os.path.exists(self.path):
+        if os.path.exists(self.path) and os.path.getsize(self.path) > 0:
             return read_csv(self.path)
         return pd.DataFrame(columns=self.key_columns)
 
@@ -142,7 +143,8 @@ class ResultTable:
         header's column order, whatever the order of their keys). Rows with columns the file lacks
         (written by an older version) add them, empty in the older rows; a row lacking a column of
         the file's or of another row's is an error, and nothing is written. The header is read at
-        each append, so two processes may append to one file."""
+        each append, so two processes may append to one file (but the rewrite that adds a column is
+        not safe against another process's append at that moment)."""
         if not rows:
             return
         rows = [{**row, "code_version": row.get("code_version", code_version())} for row in rows]

@@ -217,7 +217,11 @@ def compare_learning(committed: str, recomputed: str, flags: dict[str, str]) -> 
     of the committed threshold), and the committed rate inside the recomputed Wilson interval."""
     everything = read_csv(committed + ".csv")
     final_all = learn_report.final_evaluations(everything)
-    threshold = learn_report.otsu_threshold(final_all.eval_mean)
+    thresholds = learn_report.otsu_thresholds(final_all)  # the committed report's cut (invalid runs not pooled)
+    if len(thresholds) != 1:
+        raise ValueError(f"{committed}.csv has {len(thresholds)} success thresholds (cost scales "
+                         f"{sorted(thresholds)}); reproduce compares a learning table with one")
+    [threshold] = thresholds.values()
     new = learn_report.final_evaluations(read_csv(recomputed + ".csv"))
     old = final_all[final_all.method.isin(new.method.unique())]
     keys = ["method", "repeat", "settings", "task_options"]

@@ -186,7 +186,7 @@ def test_result_rows_say_which_code_wrote_them(tmp_path, monkeypatch):
     from harness import records
 
     version = records.code_version()
-    assert version and version != "unknown"  # a git checkout, or the installed package's version
+    assert version  # a git checkout's commit, or the source digest
     path = str(tmp_path / "table.csv")
     first, second = records.ResultTable(path, ["cell"]), records.ResultTable(path, ["cell"])
     first.append(dict(cell="a", variance=1.0))
@@ -203,6 +203,26 @@ def test_result_rows_say_which_code_wrote_them(tmp_path, monkeypatch):
     assert rerun.has(dict(cell="c")) and f"(written by code older; this run's is {version})" in rerun.summary()
     monkeypatch.setattr(records, "code_version", lambda: "newer")  # the code changed since the rows were written
     assert f"(written by code {', '.join(sorted(['older', version]))}; this run's is newer)" in rerun.summary()
+
+
+def test_commits_that_look_like_numbers_stay_text(tmp_path, monkeypatch):
+    """Short commits such as 0123456 or 1e23456 read as numbers (123456, inf) unless read as text;
+    a rewrite (a row bringing a new column) would then write the number back for good."""
+    from harness import records
+
+    path = str(tmp_path / "table.csv")
+    for version in ("0123456", "1e23456"):
+        monkeypatch.setattr(records, "code_version", lambda: version)
+        records.ResultTable(path, ["cell"]).append(dict(cell=f"at {version}", variance=1.0))
+    records.ResultTable(path, ["cell"]).append(dict(cell="x", variance=1.0, seconds=2.0, code_version="abc"))
+    assert records.read_csv(path).code_version.tolist() == ["0123456", "1e23456", "abc"]
+    rerun = records.ResultTable(path, ["cell"])
+    assert rerun.has(dict(cell="at 0123456"))
+    assert rerun.summary().endswith("(written by code 0123456; this run's is 1e23456)")
+    (tmp_path / "empty.csv").write_text("")  # a file created and never written
+    empty = records.ResultTable(str(tmp_path / "empty.csv"), ["cell"])
+    empty.append(dict(cell="a", variance=1.0))
+    assert records.read_csv(str(tmp_path / "empty.csv")).cell.tolist() == ["a"]
 
 
 def test_code_outside_a_git_checkout_is_named_by_its_source_digest(tmp_path, monkeypatch):

@@ -51,7 +51,7 @@ def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_p
     uninterrupted run (the same computation: equal to round-off), then removes it."""
     argv = TINY + ["--repeats", "2", "--learned-trials", "2", "--methods", "tp"]  # the last value of a flag wins
     learn.main(argv + ["--out", str(tmp_path / "whole")])
-    whole = pd.read_csv(tmp_path / "whole" / "learn_cartpole_angle_k1_quick.csv")
+    whole = records.read_csv(str(tmp_path / "whole" / "learn_cartpole_angle_k1_quick.csv"))
 
     real, calls = learn.evaluate_policy, []
 
@@ -77,7 +77,7 @@ def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_p
     learn.main(argv + ["--out", str(out)])
     progress = capsys.readouterr().err
     assert "tp repeats 0-1: resuming after trial 2/3" in progress and "trial 2/3," not in progress
-    resumed = pd.read_csv(out / "learn_cartpole_angle_k1_quick.csv")
+    resumed = records.read_csv(str(out / "learn_cartpole_angle_k1_quick.csv"))
     columns = ["repeat", "trial", "learned", "trial_return", "eval_mean", "data_points"]
     pd.testing.assert_frame_equal(resumed[columns], whole[columns], check_exact=False, rtol=1e-9)
     # each trial's row names the code that ran it: unrecorded (blank) for the trials of the old checkpoint
