@@ -51,9 +51,8 @@ def source_digest(entries: tuple[str, ...]) -> str:
 @functools.cache
 def code_version() -> str:
     """The code this process runs, as written into every result row's ``code_version``: the checkout's git commit
-    (``a1b2c3d``; ``a1b2c3d-dirty`` when the code packages hold uncommitted changes or new
-    files), or, where the code is not a
-    git checkout, ``source a1b2c3d4e5f6``, the ``source_digest`` of the code packages.
+    (``a1b2c3d``; ``a1b2c3d-dirty`` when the code packages hold uncommitted changes or new files), or, where the
+    code is not a git checkout, ``source a1b2c3d4e5f6``, the ``source_digest`` of the code packages.
     Cached at the first call (``ResultTable`` makes it when an experiment starts): the code a process loaded is
     the code it runs, whatever is committed later."""
     if os.path.exists(os.path.join(ROOT, ".git")):  # a folder, or a file in a git worktree
