@@ -118,9 +118,13 @@ class ResultTable:
             raise ValueError(f"row lacks key columns {missing}")
         return tuple(str(row[c]) for c in self.key_columns)
 
+    def _written(self) -> bool:
+        """Whether the file holds a header (it may exist empty)."""
+        return os.path.exists(self.path) and os.path.getsize(self.path) > 0
+
     def read(self) -> pd.DataFrame:
         """Every row so far (an empty frame with the key columns if there is none)."""
-        if os.path.exists(self.path) and os.path.getsize(self.path) > 0:
+        if self._written():
             return read_csv(self.path)
         return pd.DataFrame(columns=self.key_columns)
 
@@ -148,8 +152,7 @@ class ResultTable:
             return
         rows = [{**row, "code_version": row.get("code_version", code_version())} for row in rows]
         names = list(dict.fromkeys(name for row in rows for name in row))
-        written = os.path.exists(self.path) and os.path.getsize(self.path) > 0
-        known = list(pd.read_csv(self.path, nrows=0).columns) if written else []
+        known = list(pd.read_csv(self.path, nrows=0).columns) if self._written() else []
         columns = known + [name for name in names if name not in known]
         if lacking := [row for row in rows if set(columns) - set(row)]:
             raise ValueError(f"row columns {sorted(lacking[0])} lack {sorted(set(columns) - set(lacking[0]))} "
