@@ -8,6 +8,8 @@ the end (a batch of learning runs) save their state between steps with ``save_pi
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import functools
 import hashlib
 import os
@@ -123,10 +125,23 @@ class ResultTable:
         return os.path.exists(self.path) and os.path.getsize(self.path) > 0
 
     def read(self) -> pd.DataFrame:
-        """Every row so far (an empty frame with the key columns if there is none)."""
-        if self._written():
-            return read_csv(self.path)
-        return pd.DataFrame(columns=self.key_columns)
+        """Every row so far (an empty frame with the key columns if there is none), read under a
+        shared lock: never half-way through another process's rewrite (``extend``)."""
+        if not os.path.exists(self.path):
+            return self._rows()
+        with self._locked(fcntl.LOCK_SH):
+            return self._rows()
+
+    def _rows(self) -> pd.DataFrame:
+        return read_csv(self.path) if self._written() else pd.DataFrame(columns=self.key_columns)
+
+    @contextlib.contextmanager
+    def _locked(self, operation: int):
+        """The file opened for appending (created empty if missing), under ``flock(operation)``
+        until the block ends: LOCK_EX for a writer, LOCK_SH for a reader (POSIX advisory locks)."""
+        with open(self.path, "a") as f:
+            fcntl.flock(f, operation)
+            yield f
 
     def has(self, key: dict) -> bool:
         """Whether a row with these key values is already written (counted as reused)."""
@@ -146,21 +161,21 @@ class ResultTable:
         header's column order, whatever the order of their keys). Rows with columns the file lacks
         (written by an older version) add them, empty in the older rows; a row lacking a column of
         the file's or of another row's is an error, and nothing is written. The header is read at
-        each append, so two processes may append to one file (but the rewrite that adds a column is
-        not safe against another process's append at that moment)."""
+        each append, under an exclusive lock on the file (``flock``), so two processes may append
+        to one file: one that adds a column waits for, and is waited for by, the other's append."""
         if not rows:
             return
         rows = [{**row, "code_version": row.get("code_version", code_version())} for row in rows]
         names = list(dict.fromkeys(name for row in rows for name in row))
-        known = list(pd.read_csv(self.path, nrows=0).columns) if self._written() else []
-        columns = known + [name for name in names if name not in known]
-        if lacking := [row for row in rows if set(columns) - set(row)]:
-            raise ValueError(f"row columns {sorted(lacking[0])} lack {sorted(set(columns) - set(lacking[0]))} "
-                             f"of {self.path}'s or of the other rows'; write these results to another --out folder")
-        if known and columns != known:
-            self.read().reindex(columns=columns).to_csv(self.path, index=False)
-        text = pd.DataFrame(rows)[columns].to_csv(index=False, header=not known)
-        with open(self.path, "a") as f:
-            f.write(text)
+        with self._locked(fcntl.LOCK_EX) as f:
+            known = list(pd.read_csv(self.path, nrows=0).columns) if self._written() else []
+            columns = known + [name for name in names if name not in known]
+            if lacking := [row for row in rows if set(columns) - set(row)]:
+                raise ValueError(f"row columns {sorted(lacking[0])} lack {sorted(set(columns) - set(lacking[0]))} "
+                                 f"of {self.path}'s or of the other rows'; write these results to another --out "
+                                 "folder")
+            if known and columns != known:
+                self._rows().reindex(columns=columns).to_csv(self.path, index=False)
+            f.write(pd.DataFrame(rows)[columns].to_csv(index=False, header=not known))
         self._done.update((self._key(row), row["code_version"]) for row in rows)
         self.computed += len(rows)

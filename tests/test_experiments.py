@@ -205,6 +205,31 @@ def test_result_rows_say_which_code_wrote_them(tmp_path, monkeypatch):
     assert f"(written by code {', '.join(sorted(['older', version]))}; this run's is newer)" in rerun.summary()
 
 
+def test_appends_and_reads_wait_while_another_writer_holds_the_file(tmp_path):
+    """A writer holds an exclusive lock on the CSV while it appends (and rewrites it to add a
+    column): another append waits rather than interleave, and a read rather than see half a file."""
+    import fcntl
+    import threading
+
+    from harness import records
+
+    path = str(tmp_path / "table.csv")
+    table = records.ResultTable(path, ["cell"])
+    table.append(dict(cell="a", variance=1.0))
+    with open(path, "a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)  # as another process's extend holds it
+        writer = threading.Thread(target=table.append, args=(dict(cell="b", variance=2.0),))
+        reader = threading.Thread(target=table.read)
+        for waiting in (writer, reader):
+            waiting.start()
+            waiting.join(timeout=0.5)
+            assert waiting.is_alive()
+        assert records.read_csv(path).cell.tolist() == ["a"]
+    writer.join()
+    reader.join()
+    assert records.read_csv(path).cell.tolist() == ["a", "b"]
+
+
 def test_commits_that_look_like_numbers_stay_text(tmp_path, monkeypatch):
     """Short commits such as 0123456 or 1e23456 read as numbers (123456, inf) unless read as text;
     a rewrite (a row bringing a new column) would then write the number back for good."""
