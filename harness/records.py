@@ -137,9 +137,10 @@ class ResultTable:
 
     @contextlib.contextmanager
     def _locked(self, operation: int):
-        """The file opened for appending (created empty if missing), under ``flock(operation)``
-        until the block ends: LOCK_EX for a writer, LOCK_SH for a reader (POSIX advisory locks)."""
-        with open(self.path, "a") as f:
+        """The file under ``flock(operation)`` until the block ends: LOCK_EX for a writer (opened
+        for appending, created empty if missing), LOCK_SH for a reader (opened for reading, so a
+        read-only file can be read). POSIX advisory locks."""
+        with open(self.path, "a" if operation == fcntl.LOCK_EX else "r") as f:
             fcntl.flock(f, operation)
             yield f
 
