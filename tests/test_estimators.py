@@ -68,25 +68,57 @@ def test_value_is_unbiased():
     assert abs(z) < Z_MAX, z
 
 
+def test_mixing_weight_is_the_inverse_variance_weight_of_the_lr_part():
+    """k_LR = var_RP / (var_RP + var_LR), and its documented edge cases."""
+    from estimators.total_propagation import mixing_weight
+
+    var_rp = jnp.array([1.0, 2.0, 3.0, 0.0, 0.0, jnp.inf, 1.0, jnp.nan])
+    var_lr = jnp.array([3.0, 2.0, 1.0, 0.0, 1.0, 1.0, jnp.inf, 1.0])
+    expected = [0.25, 0.5, 0.75, 0.5, 0.0, 1.0, 0.0, np.nan]
+    np.testing.assert_allclose(mixing_weight(var_rp, var_lr), expected, rtol=1e-15)
+
+
 def test_tp_bias_from_its_data_dependent_weight_is_small():
     """k_LR is computed from the same particles, so TP is not exactly unbiased. Measured here
-    (P = 20, N = 2000): relative bias about 0.5-0.8 % with the LR part (|z| 3-5), about 5-6 %
-    with the BIW-LR part (its baseline's bias, scaled by k_LR ~ 0.1-0.3)."""
+    (P = 20, N = 2000, seeds 0 and 7): relative bias 0.6-0.8 % with the LR part (|z| 4-6), and
+    5.4-6.3 % with the default BIW-LR part, whose baseline's bias (8.6-11.6 %, the next test)
+    TP scales down by k_LR. Bounds: 2 % and 8 %, and below BIW-LR's own bias."""
     _, grads_lr, _, aux = many(estimators.make("tp", weighting="lr"), num_particles=20, n=2000)
     print("TP(LR) relative bias", relative_bias(grads_lr).round(4))
     assert np.all(np.abs(relative_bias(grads_lr)) < 0.02)
     assert np.all(np.isfinite(np.asarray(aux["k_lr"])))  # clipped to [0, 1]; NaN would be a bug
+    tp = np.abs(relative_bias(many(estimators.make("tp"), num_particles=20, n=2000)[1]))
+    biw_lr = np.abs(relative_bias(many(estimators.make("biw_lr"), num_particles=20, n=2000)[1]))
+    print("TP relative bias", tp.round(4), "BIW-LR", biw_lr.round(4))
+    assert np.all(tp < 0.08) and np.all(tp < biw_lr)
+
+
+def test_tp_variance_against_its_parts():
+    """Variance of 2000 estimates at P = 20, per parameter (s.e. of a variance ratio ~4.5 %).
+    With the LR part, TP's inverse-variance mix is as good as its better part (RP here): ratio
+    to min(RP, LR) measured 0.89-1.04, bound 1.15. With the default BIW-LR part it is worse
+    than RP on this system (ratio 1.3-1.9), probably because BIW-LR's reported variance, which
+    sets k_LR, is 0.4-0.6 of its spread (test_reported_variance_matches_the_spread_of_estimates),
+    so k_LR leans to it; bounds 2.5 x RP's and 0.25 x BIW-LR's (measured 0.07-0.17). A weight that
+    favoured the higher-variance part would give about BIW-LR's variance, 7-30 x RP's."""
+    parts = dict(rp=("rp", {}), lr=("lr", {}), biw_lr=("biw_lr", {}), tp=("tp", {}), tp_lr=("tp", {"weighting": "lr"}))
+    var = {label: many(estimators.make(name, **options), 20, 2000)[1].var(0, ddof=1)
+           for label, (name, options) in parts.items()}
+    print({label: v.round(4) for label, v in var.items()})
+    assert np.all(var["tp_lr"] < 1.15 * np.minimum(var["rp"], var["lr"]))
+    assert np.all(var["tp"] < 2.5 * var["rp"]) and np.all(var["tp"] < 0.25 * var["biw_lr"])
 
 
 def test_biw_lr_baseline_bias_shrinks_with_particles():
     """The paper's normalised importance-sampled leave-one-out baseline depends on the other
-    samples, which biases BIW-LR. Measured here: about 10-11 % (relative) at P = 20 and
-    3-4 % at P = 100."""
+    samples, which biases BIW-LR. Measured here: 8.6-10.8 % (relative) at P = 20 and
+    2.3-3.7 % at P = 100; bounds 5-15 % and 6 %, and the bias must shrink."""
     biases = {}
     for P, n in ((20, 2000), (100, 500)):
         _, grads, _, _ = many(estimators.make("biw_lr"), num_particles=P, n=n)
         biases[P] = np.abs(relative_bias(grads))
         print(f"BIW-LR P={P}: relative bias {biases[P].round(4)}, z {z_scores(grads).round(1)}")
+    assert np.all((biases[20] > 0.05) & (biases[20] < 0.15)) and np.all(biases[100] < 0.06)
     assert np.all(biases[100] < 0.6 * biases[20])
 
 
@@ -143,13 +175,30 @@ def test_pairwise_baseline_matches_its_formula():
     np.testing.assert_allclose(pairwise_baseline(zeta, jnp.asarray(log_p), jnp.asarray(G)), expected, rtol=1e-9)
 
 
+def test_gaussian_resample_has_the_particles_mean_and_covariance():
+    """``mu + xi L^T``: xi = 0 gives the particles' mean; xi = I gives the rows of L^T, whose
+    Gram matrix is the particles' covariance (ddof 1). Exact to round-off."""
+    from estimators.reparameterisation import gaussian_resample
+
+    s = jax.random.normal(jax.random.key(0), (7, 3)) @ jnp.array([[1.0, 0.5, 0.0], [0.0, 2.0, -0.3], [0.0, 0.0, 0.7]])
+    mean = np.asarray(s).mean(0)
+    np.testing.assert_allclose(gaussian_resample(s, jnp.zeros((1, 3)))[0], mean, rtol=1e-14)
+    rows = np.asarray(gaussian_resample(s, jnp.eye(3))) - mean
+    np.testing.assert_allclose(rows.T @ rows, np.cov(np.asarray(s).T, ddof=1), rtol=1e-12)
+    assert np.allclose(np.tril(rows, -1), 0.0)  # L^T, upper triangular
+
+
 def test_gr_bias_shrinks_with_particles():
-    """GR's refit covariance is noisy for few particles; its bias must fall as P grows."""
+    """GR's refit covariance is noisy for few particles; its bias must fall as P grows.
+    Measured (relative to the exact gradient): 5-10 % at P = 4, 0.8-1.6 % at P = 40; bounds:
+    under 3 % at P = 40 and half the P = 4 error."""
     errors = {}
     for P, n in ((4, 4000), (40, 1000)):
         _, grads, _, _ = many(estimators.make("gr"), num_particles=P, n=n)
         errors[P] = np.abs(grads.mean(0) - EXACT).max()
-        print(f"GR P={P}: max |bias| {errors[P]:.4f}, z {z_scores(grads).round(1)}")
+        print(f"GR P={P}: max |bias| {errors[P]:.4f}, relative {relative_bias(grads).round(4)}")
+        if P == 40:
+            assert np.all(np.abs(relative_bias(grads)) < 0.03)
     assert errors[40] < 0.5 * errors[4]
 
 
@@ -203,17 +252,19 @@ def test_variance_scales_like_one_over_p(name):
     assert np.all((ratio > 3.2) & (ratio < 5.0)), ratio
 
 
-@pytest.mark.parametrize("name", ["rp", "lr", "tp"])
-def test_reported_variance_matches_the_spread_of_estimates(name):
-    """``grad_var`` (per-particle variance / P) against the variance of 2000 estimates. For
-    RP and LR (independent particles) it must agree (ratio 0.85-1.15, s.e. of the ratio ~3 %);
-    for TP the per-particle terms are coupled through k_LR and the BIW weights, and the
-    reported variance is only an approximation: its ratio is printed, not asserted."""
+@pytest.mark.parametrize("name, band", [("rp", (0.85, 1.15)), ("lr", (0.85, 1.15)), ("biw_lr", (0.30, 0.70)),
+                                        ("tp", (0.45, 0.80))])
+def test_reported_variance_matches_the_spread_of_estimates(name, band):
+    """``grad_var`` (per-particle variance / P) against the variance of 2000 estimates (s.e. of
+    the ratio ~3 %). For RP and LR (independent particles) it must agree: 0.85-1.15. For BIW-LR
+    and TP the per-particle terms are coupled (the self-normalised weights, the leave-one-out
+    baseline, k_LR), and the reported variance underestimates the spread: measured 0.41-0.60
+    (BIW-LR) and 0.55-0.68 (TP) at seeds 0 and 7. Their bands, about 4 s.e. beyond those, hold
+    it where it is: it sets the optimiser's step (``harness.optim``) and TP's k_LR."""
     _, grads, grad_var, _ = many(estimators.make(name), 20, 2000, seed=7)
     ratio = grad_var.mean(0) / grads.var(0, ddof=1)
     print(name, "reported / empirical variance:", ratio.round(3))
-    if name != "tp":
-        assert np.all((ratio > 0.85) & (ratio < 1.15)), ratio
+    assert np.all((ratio > band[0]) & (ratio < band[1])), ratio
 
 
 def test_tp_with_fixed_weights_reduces_to_rp_and_biw_lr():
