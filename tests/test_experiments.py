@@ -24,6 +24,24 @@ def test_variance_runs_on_mjx(tmp_path):
     assert len(table) == 4 and (table.variance > 0).all() and (table.nan_count == 0).all()
 
 
+def test_cell_statistics_against_numpy():
+    """The variance experiment's numbers from a hand-made set of estimates: the variance is the
+    trace of the covariance (ddof 1) of the finite estimates, the norm that of their mean; a
+    non-finite estimate is counted and left out; k_LR and ESS are NaN-aware means."""
+    grads = np.array([[1.0, 2.0], [3.0, -1.0], [np.nan, 0.0], [2.0, 5.0]])
+    rep = variance.Repeats(grads, values=np.array([1.0, 2.0, 4.0, 5.0]), reported=np.array([0.5, np.nan, 1.5, 1.0]),
+                           k_lr=np.array([0.2, 0.4, np.nan, 0.6]), ess=np.full(4, np.nan), nan_count=3,
+                           seconds=0.1, compile_seconds=2.0)
+    stats = variance.cell_statistics(rep)
+    finite = grads[[0, 1, 3]]
+    assert stats["variance"] == pytest.approx(np.var(finite[:, 0], ddof=1) + np.var(finite[:, 1], ddof=1), rel=1e-14)
+    assert stats["variance"] == pytest.approx(1.0 + 9.0, rel=1e-14)  # the columns' variances by hand
+    assert stats["grad_norm"] == pytest.approx(np.hypot(2.0, 2.0), rel=1e-14)
+    assert stats["value"] == 3.0 and stats["value_std"] == pytest.approx(np.std([1.0, 2.0, 4.0, 5.0], ddof=1))
+    assert stats["reported_variance"] == 1.0 and stats["mean_k_lr"] == pytest.approx(0.4)
+    assert np.isnan(stats["mean_ess"]) and stats["nonfinite_estimates"] == 1 and stats["nan_count"] == 3
+
+
 def test_variance_runs_end_to_end_and_resumes(tmp_path, capsys):
     out = str(tmp_path)
     variance.main(TINY + ["--out", out])

@@ -135,6 +135,10 @@ def test_nlml_matches_dense_numpy_full_and_masked():
 
 
 def test_float32_data_stays_float32():
+    """A GP built from float32 data computes in float32, and predicts like the float64 numpy
+    reference to float32's accuracy: float32 rounds at 6e-8 relative, and the solves with the
+    30 x 30 kernel matrix amplify it by its conditioning; measured 2.6e-6 on a mean of size 0.8,
+    bound 2e-5."""
     x, y, log_hyp, x_test = random_problem(4)
     data = gp.GPData(jnp.asarray(x, jnp.float32), jnp.asarray(y, jnp.float32), jnp.ones(30, bool))
     post = gp.posterior(jnp.asarray(log_hyp, jnp.float32), data)
@@ -143,7 +147,7 @@ def test_float32_data_stays_float32():
     assert all(v.dtype == jnp.float32 for v in pred)
     assert gp.neg_log_marginal_likelihood(post.log_hyp, data).dtype == jnp.float32
     mean, var, _ = np_predict(log_hyp, x, y, x_test[:1])
-    np.testing.assert_allclose(pred.mean, mean[0], atol=1e-4)
+    np.testing.assert_allclose(pred.mean, mean[0], atol=2e-5)
 
 
 # ----- PILCO's gp0 reference ------------------------------------------------------------------------
@@ -243,13 +247,15 @@ def cartpole():
 
 
 def test_training_raises_marginal_likelihood(cartpole):
+    """60 L-BFGS steps from ``init_log_hyp`` take the cart-pole NLML from 394.19 to -675.96
+    (measured, 200 transitions, 4 outputs): the bound asks for half that gain, 535 nats."""
     data, result = cartpole["data"], cartpole["result"]
     before = float(gp.neg_log_marginal_likelihood(gp.init_log_hyp(data), data))
     after = float(gp.neg_log_marginal_likelihood(result.log_hyp, data))
     print(f"\ncart-pole NLML (200 transitions, 4 outputs): initial {before:.2f}, trained {after:.2f}")
     history = np.asarray(result.history)
     assert np.all(np.isfinite(history))
-    assert after < before - 100.0
+    assert after < before - 535.0
     # L-BFGS with a line search only accepts decreases of the objective.
     assert np.all(np.diff(history) <= 1e-9 * np.abs(history[:-1]))
     assert np.isclose(history[-1], gp.objective(result.log_hyp, data), rtol=1e-12)

@@ -21,7 +21,6 @@ def test_with_flags_replaces_and_appends():
 
 def test_variance_rule_is_the_f_interval():
     low, high = stats.f.ppf([0.025, 0.975], 9, 29)
-    assert 0.27 < low < 0.29 and 2.58 < high < 2.6  # F(9, 29) quantiles
     assert reproduce.variance_rule("v", 1.0, 30, 0.99 * high, 10)["agrees"]
     assert not reproduce.variance_rule("v", 1.0, 30, 1.01 * high, 10)["agrees"]
     assert not reproduce.variance_rule("v", 1.0, 30, 0.99 * low, 10)["agrees"]
