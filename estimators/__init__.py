@@ -29,6 +29,7 @@ REGISTRY: dict[str, Callable[..., object]] = {
     "tp_pairwise": lambda: TotalPropagation(baseline="pairwise"),
     "pilco": lambda: Pilco(),
 }
+"""name -> factory: ``REGISTRY[name](**options)`` returns the estimator (a hashable callable)."""
 
 
 def make(name: str, **overrides):
@@ -38,6 +39,9 @@ def make(name: str, **overrides):
     try:
         return REGISTRY[name](**overrides)
     except TypeError as err:
+        if not overrides:  # the entry itself is wrong
+            raise TypeError(f"REGISTRY[{name!r}] must be a factory that returns the estimator (its class, or a "
+                            f"function of its options), not the estimator; calling it failed: {err}") from err
         raise ValueError(f"bad option for estimator {name!r}: {err}") from None
 
 

@@ -22,7 +22,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from estimators.base import Estimate, Problem
+from estimators.base import Estimate, Problem, task_moment_forms
 from models.form_moments import expected_cost, map_moments, policy_moments
 from tasks.forms import SaturatingCost, TrigLinearMap
 
@@ -71,11 +71,23 @@ def pilco_objective(problem: Problem, theta) -> tuple[jax.Array, jax.Array]:
     return costs.sum(), costs
 
 
+TASK_FORMS = ("the task's features and cost as forms: the Task properties policy_feature_map, gp_feature_map "
+              "and cost_form (tasks.forms; tasks/cartpole.py defines its functions through them) and "
+              "model_initial_moments; a task without them runs the particle estimators only")
+
+
+def check_task(task) -> None:
+    """Fail now, naming the Task properties to add, when PILCO cannot moment-match ``task``
+    (rather than after a trial and a GP fit)."""
+    if task_moment_forms(task) is None or task.gp_feature_map is None:
+        raise ValueError(f"the pilco estimator needs {TASK_FORMS}; task {task.name!r} lacks them")
+
+
 def check_capabilities(problem: Problem) -> None:
     """Fail with what is missing when the problem cannot be moment-matched."""
     missing = []
     if problem.moment_forms is None:
-        missing.append("the task's features and cost as forms (tasks.forms) and an initial distribution")
+        missing.append(TASK_FORMS)
     if problem.policy.form is None:
         missing.append("a policy with a form (tasks.forms.PolicyForm: the RBF network or the linear policy)")
     if not hasattr(problem.model, "next_state_moments"):

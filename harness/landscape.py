@@ -76,7 +76,10 @@ class Args(scenario_lib.ExperimentArgs):
     def __post_init__(self):
         super().__post_init__()
         scenario_lib.check_model(self.model)
-        scenario_lib.check_estimators(str_list(self.estimators))
+        scenario_lib.check_estimators(str_list(self.estimators), self.task)
+        if "pilco" in str_list(self.estimators):
+            raise ValueError("the landscape projects each particle's gradient (Estimate.aux['particle_grads']), "
+                             "which pilco's deterministic objective has not: leave pilco out of --estimators")
         names = tasks.make(self.task).model_state_names
         dims = self.slice_names
         if len(dims) != 2 or not set(dims) <= set(names):
@@ -122,6 +125,9 @@ def measure_delta(args: Args, where: scenario_lib.Setting, delta: float, key: ja
     row["fd_slope"], row["fd_slope_ci"] = mean_and_interval(slope)
     for name in str_list(args.estimators):
         e = jitted[name](where.problem, where.theta(delta), key, P)
+        if "particle_grads" not in e.aux:
+            raise ValueError(f"estimator {name!r} gives no aux['particle_grads'], each particle's gradient, which the "
+                             "landscape projects (estimators.base.particle_estimate adds it)")
         row[f"{name}_grad"], row[f"{name}_ci"] = mean_and_interval(projected(e.aux["particle_grads"], where.direction))
         row[f"{name}_variance"] = float(sum(jnp.sum(v) for v in jax.tree.leaves(e.grad_var)))
         row[f"{name}_nans"] = int(e.aux["nan_count"])

@@ -40,6 +40,7 @@ import numpy as np
 
 import tasks
 from estimators.base import task_problem
+from estimators.pilco import check_task
 from harness.cli import parse, str_list
 from harness.episodic import RunState, evaluate_policy, in_precision, learning_run, policy_optimiser
 from harness.records import ResultTable, code_version, load_pickle, save_pickle
@@ -71,8 +72,8 @@ particle methods sample it."""
 NOISE_FIXED_PER_RUN = {"rp_fs_run": "rp_fs", "gr_fs_run": "gr_fs"}
 """Method -> the paper's method it reads otherwise: the paper's RP_FS and GR_FS fix "the random
 seed", and it does not say for how long. ``rp_fs`` and ``gr_fs`` fix the noise for one trial's
-policy optimisation (DESIGN.md: "for the whole policy optimisation") and draw it afresh for the
-next trial; these fix it for the whole learning run, every trial optimising on the same
+policy optimisation (the project's design: "fixed for the whole policy optimisation") and draw
+it afresh for the next trial; these fix it for the whole learning run, every trial optimising on the same
 particles (``learning_run(optimisation_key_per_run=True)``)."""
 
 PRESETS = {
@@ -101,7 +102,7 @@ class Args:
     """Episodic learning: success rates and learning curves per method."""
 
     task: str = "cartpole"
-    """Task name (cartpole or unicycle)."""
+    """Task name (a tasks.REGISTRY name: cartpole, unicycle)."""
     cost: str = ""
     """Cost type (cartpole: angle or tip; empty: the task preset's)."""
     noise_k: float = 1.0
@@ -147,8 +148,11 @@ class Args:
             raise ValueError(f"unknown preset {self.preset!r}; valid presets: {sorted(PRESETS)}")
         unknown = [m for m in str_list(self.methods) if m not in METHODS]
         if unknown:
-            raise ValueError(f"unknown methods {unknown}; valid methods: {list(METHODS)}")
-        self.make_task()  # fails with the valid tasks and options
+            raise ValueError(f"unknown methods {unknown}; valid methods: {list(METHODS)} (a new estimator becomes "
+                             "a method with an entry in harness.learn.METHODS)")
+        task = self.make_task()  # fails with the valid tasks and options
+        if any(METHODS[m][0] == "pilco" for m in str_list(self.methods)):
+            check_task(task)
         if self.repeats < 1 or self.batch < 1:
             raise ValueError("repeats and batch must be >= 1")
         if self.gp_inducing < 0:

@@ -38,6 +38,7 @@ import numpy as np
 import estimators
 import tasks
 from estimators.base import Problem, draw_noise, per_particle, rollout, task_problem, theta_dtype
+from estimators.pilco import check_task
 from harness.episodic import learning_run, policy_optimiser
 from harness.records import ROOT, load_pickle, save_pickle, source_digest
 from models import gp
@@ -236,7 +237,7 @@ class ExperimentArgs:
 
     def __post_init__(self):
         tasks.make(self.task)  # fails with the list of tasks
-        check_estimators([self.scenario_estimator])
+        check_estimators([self.scenario_estimator], self.task)
 
     @property
     def scenario(self) -> ScenarioArgs:
@@ -330,9 +331,12 @@ def model_labels(task_name: str, models: list[str]) -> list[str]:
     return [f"- **mjx: {task.mjcf_label}** (see {os.path.basename(task.mjcf)}).", ""]
 
 
-def check_estimators(names: list[str]) -> None:
+def check_estimators(names: list[str], task: str) -> None:
+    """Fail now on an unknown estimator (with the list) or on pilco for a task without forms."""
     for name in names:
-        estimators.make(name)  # fails with the list of estimators
+        estimators.make(name)
+        if name == "pilco":
+            check_task(tasks.make(task))
 
 
 def check_model(model: str) -> None:

@@ -308,6 +308,12 @@ def test_registry_errors():
         estimators.make("rp_fs", seed=1)
 
 
+def test_a_registry_entry_must_be_a_factory(monkeypatch):
+    monkeypatch.setitem(estimators.REGISTRY, "my_rp", estimators.make("rp"))  # the estimator, not its factory
+    with pytest.raises(TypeError, match="must be a factory"):
+        estimators.make("my_rp")
+
+
 def test_biw_statistics_match_the_pairwise_formulas():
     """The matrix-product forms of BIW-LR's statistics against the (P, P, S) formulas written
     out in numpy: log p(s_j | zeta_i), and A_i = sum_j W_ij (s_j - m_i)^2, B_i = sum_j W_ij

@@ -424,6 +424,26 @@ def test_landscape_rejects_an_unknown_slice_dimension():
         landscape.main(["--slice-dims", "x,phi"])
 
 
+def test_landscape_rejects_pilco():
+    from harness import landscape
+
+    with pytest.raises(ValueError, match="leave pilco out"):
+        landscape.main(["--estimators", "rp,pilco"])
+
+
+def test_pilco_on_a_task_without_forms_fails_before_any_computation(monkeypatch):
+    """A task without forms (a new one) cannot be moment-matched: every entry point that would
+    run pilco says so up front, naming the Task properties to add."""
+    from harness import learn, landscape
+    from tasks.cartpole import CartPole
+
+    monkeypatch.setattr(CartPole, "cost_form", property(lambda self: None))
+    for main, argv in ((variance.main, []), (variance.main, ["--scenario-estimator", "tp", "--estimators", "pilco"]),
+                       (landscape.main, []), (learn.main, ["--methods", "tp,pilco"])):
+        with pytest.raises(ValueError, match="policy_feature_map, gp_feature_map and cost_form"):
+            main(argv)
+
+
 def test_landscape_slices_default_to_the_tasks_dimensions():
     from harness import landscape
 

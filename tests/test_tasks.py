@@ -38,6 +38,24 @@ def test_step_matches_reference(name):
     np.testing.assert_allclose(got, z_next, rtol=0, atol=1e-5)
 
 
+@pytest.mark.parametrize("name", sorted(tasks.REGISTRY))
+def test_forms_are_the_task_functions(name):
+    """PILCO moment-matches the forms (policy_feature_map, gp_feature_map, cost_form), the
+    particle methods evaluate the functions: at a point (zero covariance) they must agree, for
+    every registered task that declares forms (a new task's forms included). 1e-12."""
+    from models.form_moments import expected_cost
+
+    task = tasks.make(name)
+    if task.cost_form is None:
+        pytest.skip(f"{name} declares no forms (particle estimators only)")
+    points = jax.random.normal(jax.random.key(0), (8, task.model_state_dim))
+    zero = jnp.zeros((task.model_state_dim, task.model_state_dim))
+    for s in points:
+        np.testing.assert_allclose(task.policy_feature_map(s), task.policy_features(s), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(task.gp_feature_map(s), task.gp_features(s), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(expected_cost(task.cost_form, s, zero), task.cost(s), rtol=1e-12, atol=1e-12)
+
+
 def test_rk4_step_is_the_fourth_order_taylor_map_on_a_linear_ode():
     """For dz/dt = A z one RK4 step is exactly z + hA z + (hA)^2 z / 2 + (hA)^3 z / 6 +
     (hA)^4 z / 24: checks every stage's feed and weight (to rounding, 1e-13)."""
