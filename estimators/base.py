@@ -108,6 +108,10 @@ def next_state_distribution(problem: Problem, net, s: jax.Array) -> Zeta:
     predicts, the variances are scaled and summed."""
     u = problem.policy.network(net, problem.features(s))
     pred = problem.model.predict(problem.model_params, s, u)
+    if wrong := {name: jnp.shape(x) for name, x in pred._asdict().items() if jnp.shape(x) != s.shape}:
+        raise ValueError(f"{type(problem.model).__name__}.predict(params, s, u) returned {wrong} for one particle's "
+                         f"state of shape {s.shape}: mean, model_var and noise_var must each be shaped like the state "
+                         "(the estimators vmap over particles)")
     var = problem.model_var_scale * pred.model_var + problem.noise_var_scale * pred.noise_var
     return Zeta(pred.mean, jnp.sqrt(var))
 
@@ -193,6 +197,15 @@ def particle_estimate(value: jax.Array, per_particle_grads, extra_nans=0, **aux)
     return Estimate(value, grad, grad_var, {**aux, "nan_count": nan_count, "particle_grads": per_particle_grads})
 
 
+def check_theta(problem: Problem, theta) -> None:
+    """Fail (while tracing) when theta is not shaped like ``problem.policy.init``'s parameters."""
+    expected = jax.eval_shape(problem.policy.init, jax.random.key(0))
+    same_shapes = [jnp.shape(x) for x in jax.tree.leaves(theta)] == [x.shape for x in jax.tree.leaves(expected)]
+    if jax.tree.structure(theta) != jax.tree.structure(expected) or not same_shapes:
+        raise ValueError(f"theta {jax.tree.map(jnp.shape, theta)} is not shaped like the policy's parameters "
+                         f"{jax.tree.map(lambda x: x.shape, expected)} (problem.policy.init(key) makes them)")
+
+
 def prepared(problem: Problem, theta):
     """``(net, to_theta)``: the policy's prepared parameters and the linear map taking a batch
     of cotangents for net (leaves (*batch, *net shape)) to cotangents for theta.
@@ -202,6 +215,7 @@ def prepared(problem: Problem, theta):
     one matmul rather than a batch of solves through the RBF weights (the cart-pole's RBF
     network: 305 x 305). Where ``prepare`` is the identity the map is the identity, skipped.
     """
+    check_theta(problem, theta)
     if problem.policy.prepare is identity:  # nothing to map (the direct RBF, the linear policy)
         return theta, lambda net_grads, batch_dims=1: net_grads
     flat_theta, unravel_theta = jax.flatten_util.ravel_pytree(theta)

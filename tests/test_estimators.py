@@ -308,6 +308,23 @@ def test_registry_errors():
         estimators.make("rp_fs", seed=1)
 
 
+def test_wrong_shapes_are_named_while_tracing():
+    """A theta not shaped like the policy's parameters, or a model whose prediction is not
+    shaped like the state, fails with what was expected instead of a broadcasting error."""
+    from models.prediction import Prediction
+
+    with pytest.raises(ValueError, match=r"not shaped like the policy's parameters LinearParams\(weight=\(1, 2\)"):
+        estimators.make("rp")(PROBLEM, LinearParams(jnp.zeros((1, 3)), jnp.zeros(1)), jax.random.key(0), 5)
+
+    @dataclasses.dataclass(frozen=True)
+    class ThreeVariances:
+        def predict(self, params, s, u):
+            return Prediction(s, jnp.ones(3), jnp.ones_like(s))
+
+    with pytest.raises(ValueError, match=r"ThreeVariances.predict.*'model_var': \(3,\).*state of shape \(2,\)"):
+        estimators.make("lr")(dataclasses.replace(PROBLEM, model=ThreeVariances()), THETA, jax.random.key(0), 5)
+
+
 def test_a_registry_entry_must_be_a_factory(monkeypatch):
     monkeypatch.setitem(estimators.REGISTRY, "my_rp", estimators.make("rp"))  # the estimator, not its factory
     with pytest.raises(TypeError, match="must be a factory"):
