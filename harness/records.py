@@ -125,24 +125,16 @@ class ResultTable:
         return os.path.exists(self.path) and os.path.getsize(self.path) > 0
 
     def read(self) -> pd.DataFrame:
-        """Every row so far (an empty frame with the key columns if there is none), read under a
-        shared lock: never half-way through another process's rewrite (``extend``)."""
-        if not os.path.exists(self.path):
-            return self._rows()
-        with self._locked(fcntl.LOCK_SH):
-            return self._rows()
-
-    def _rows(self) -> pd.DataFrame:
+        """Every row so far (an empty frame with the key columns if there is none). Needs no lock:
+        a rewrite replaces the file whole (``extend``)."""
         return read_csv(self.path) if self._written() else pd.DataFrame(columns=self.key_columns)
 
     @contextlib.contextmanager
-    def _locked(self, operation: int):
-        """The file under ``flock(operation)`` until the block ends: LOCK_EX for a writer (opened
-        for appending, created empty if missing), LOCK_SH for a reader (opened for reading, so a
-        read-only file can be read). POSIX advisory locks."""
-        with open(self.path, "a" if operation == fcntl.LOCK_EX else "r") as f:
-            fcntl.flock(f, operation)
-            yield f
+    def _writing(self):
+        """One writer at a time, across processes: an exclusive ``flock`` on ``PATH.lock``."""
+        with open(self.path + ".lock", "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            yield
 
     def has(self, key: dict) -> bool:
         """Whether a row with these key values is already written (counted as reused)."""
@@ -161,14 +153,15 @@ class ResultTable:
         """Write ``rows`` now, in one append (the header with the first rows; later rows in the
         header's column order, whatever the order of their keys). Rows with columns the file lacks
         (written by an older version) add them, empty in the older rows; a row lacking a column of
-        the file's or of another row's is an error, and nothing is written. The header is read at
-        each append, under an exclusive lock on the file (``flock``), so two processes may append
-        to one file: one that adds a column waits for, and is waited for by, the other's append."""
+        the file's or of another row's is an error, and nothing is written. Writers take turns
+        (``_writing``), and read the header at each append, so two processes may append to one
+        file. The rewrite that adds a column goes to a temporary file that then replaces the CSV:
+        a crash in it loses nothing, and a reader sees the old file or the new one."""
         if not rows:
             return
         rows = [{**row, "code_version": row.get("code_version", code_version())} for row in rows]
         names = list(dict.fromkeys(name for row in rows for name in row))
-        with self._locked(fcntl.LOCK_EX) as f:
+        with self._writing():
             known = list(pd.read_csv(self.path, nrows=0).columns) if self._written() else []
             columns = known + [name for name in names if name not in known]
             if lacking := [row for row in rows if set(columns) - set(row)]:
@@ -176,7 +169,9 @@ class ResultTable:
                                  f"of {self.path}'s or of the other rows'; write these results to another --out "
                                  "folder")
             if known and columns != known:
-                self._rows().reindex(columns=columns).to_csv(self.path, index=False)
-            f.write(pd.DataFrame(rows)[columns].to_csv(index=False, header=not known))
+                self.read().reindex(columns=columns).to_csv(self.path + ".tmp", index=False)
+                os.replace(self.path + ".tmp", self.path)
+            with open(self.path, "a") as f:
+                f.write(pd.DataFrame(rows)[columns].to_csv(index=False, header=not known))
         self._done.update((self._key(row), row["code_version"]) for row in rows)
         self.computed += len(rows)

@@ -223,9 +223,10 @@ def test_result_rows_say_which_code_wrote_them(tmp_path, monkeypatch):
     assert f"(written by code {', '.join(sorted(['older', version]))}; this run's is newer)" in rerun.summary()
 
 
-def test_appends_and_reads_wait_while_another_writer_holds_the_file(tmp_path):
-    """A writer holds an exclusive lock on the CSV while it appends (and rewrites it to add a
-    column): another append waits rather than interleave, and a read rather than see half a file."""
+def test_writers_take_turns_and_a_column_adding_rewrite_is_atomic(tmp_path, monkeypatch):
+    """Writers hold an exclusive lock (PATH.lock) while they append or rewrite: another
+    append, here one that adds a column, waits for it, while a reader goes on and sees the
+    whole table as it was. A rewrite that dies half-way leaves the table as it was."""
     import fcntl
     import threading
 
@@ -234,18 +235,31 @@ def test_appends_and_reads_wait_while_another_writer_holds_the_file(tmp_path):
     path = str(tmp_path / "table.csv")
     table = records.ResultTable(path, ["cell"])
     table.append(dict(cell="a", variance=1.0))
-    with open(path, "a") as held:
+    before = records.read_csv(path)
+    with open(path + ".lock", "a") as held:
         fcntl.flock(held, fcntl.LOCK_EX)  # as another process's extend holds it
-        writer = threading.Thread(target=table.append, args=(dict(cell="b", variance=2.0),))
-        reader = threading.Thread(target=table.read)
-        for waiting in (writer, reader):
-            waiting.start()
-            waiting.join(timeout=0.5)
-            assert waiting.is_alive()
-        assert records.read_csv(path).cell.tolist() == ["a"]
+        writer = threading.Thread(target=table.append, args=(dict(cell="b", variance=2.0, seconds=3.0),))
+        writer.start()
+        writer.join(timeout=0.5)
+        assert writer.is_alive()
+        pd.testing.assert_frame_equal(table.read(), before)
     writer.join()
-    reader.join()
-    assert records.read_csv(path).cell.tolist() == ["a", "b"]
+    rows = records.read_csv(path)
+    assert rows.cell.tolist() == ["a", "b"] and rows.seconds.isna().tolist() == [True, False]
+
+    write_csv = pd.DataFrame.to_csv
+
+    def dies(frame, path_or_buf=None, **kwargs):  # a rewrite to a file stops half-way
+        if path_or_buf is None:
+            return write_csv(frame, **kwargs)
+        with open(path_or_buf, "w") as f:
+            f.write("cell,vari")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(pd.DataFrame, "to_csv", dies)
+    with pytest.raises(OSError, match="disk full"):
+        table.append(dict(cell="c", variance=4.0, seconds=5.0, trial=1))  # a new column: a rewrite
+    pd.testing.assert_frame_equal(records.read_csv(path), rows)
 
 
 def test_commits_that_look_like_numbers_stay_text(tmp_path, monkeypatch):
