@@ -8,6 +8,8 @@ the BIW-LR baselines of ``estimators.likelihood_ratio`` by name.
 
 from __future__ import annotations
 
+import functools
+import inspect
 from typing import Callable
 
 from estimators.base import Estimate, FixedNoise, Problem, task_problem
@@ -36,12 +38,15 @@ def make(name: str, **overrides):
     """The estimator ``name`` (one of ``REGISTRY``), with its options overridden."""
     if name not in REGISTRY:
         raise ValueError(f"unknown estimator {name!r}; valid estimators: {sorted(REGISTRY)}")
+    factory = REGISTRY[name]
+    if not (isinstance(factory, type) or inspect.isroutine(factory) or isinstance(factory, functools.partial)):
+        raise TypeError(f"REGISTRY[{name!r}] is a {type(factory).__name__} object; it must be a factory that "
+                        "returns the estimator: its class, or a function of its options")
+    if not overrides:
+        return factory()
     try:
-        return REGISTRY[name](**overrides)
+        return factory(**overrides)
     except TypeError as err:
-        if not overrides:  # the entry itself is wrong
-            raise TypeError(f"REGISTRY[{name!r}] must be a factory that returns the estimator (its class, or a "
-                            f"function of its options), not the estimator; calling it failed: {err}") from err
         raise ValueError(f"bad option for estimator {name!r}: {err}") from None
 
 

@@ -22,7 +22,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from estimators.base import Estimate, Problem, task_moment_forms
+from estimators.base import Estimate, Problem, check_theta, task_moment_forms
 from models.form_moments import expected_cost, map_moments, policy_moments
 from tasks.forms import SaturatingCost, TrigLinearMap
 
@@ -58,6 +58,7 @@ def pilco_objective(problem: Problem, theta) -> tuple[jax.Array, jax.Array]:
     """``J(theta)`` and the expected cost per step (T,); fails with what is missing where the
     problem cannot be moment-matched (``check_capabilities``)."""
     check_capabilities(problem)
+    check_theta(problem, theta)
     forms = problem.moment_forms
     dtype = jax.tree.leaves(theta)[0].dtype
     net = problem.policy.prepare(theta)

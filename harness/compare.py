@@ -81,7 +81,8 @@ class Args(scenario_lib.ExperimentArgs):
             raise ValueError(f"the reference must be a true-dynamics model ({', '.join(true)}), not the learned "
                              f"{self.reference_model}")
         references = [self.reference_estimator] if self.reference_estimator != "fd" else []
-        scenario_lib.check_estimators(str_list(self.estimators) + references, self.task)
+        scenario_lib.check_estimators(str_list(self.estimators), self.task, str_list(self.models))
+        scenario_lib.check_estimators(references, self.task, [self.reference_model])
         if self.reference_fd_step <= 0:
             raise ValueError(f"reference_fd_step must be > 0; got {self.reference_fd_step}")
         if self.repeats < 2 or self.reference_repeats < 2:

@@ -76,10 +76,10 @@ class Args(scenario_lib.ExperimentArgs):
     def __post_init__(self):
         super().__post_init__()
         scenario_lib.check_model(self.model)
-        scenario_lib.check_estimators(str_list(self.estimators), self.task)
         if "pilco" in str_list(self.estimators):
             raise ValueError("the landscape projects each particle's gradient (Estimate.aux['particle_grads']), "
                              "which pilco's deterministic objective has not: leave pilco out of --estimators")
+        scenario_lib.check_estimators(str_list(self.estimators), self.task, [self.model])
         names = tasks.make(self.task).model_state_names
         dims = self.slice_names
         if len(dims) != 2 or not set(dims) <= set(names):
@@ -125,9 +125,6 @@ def measure_delta(args: Args, where: scenario_lib.Setting, delta: float, key: ja
     row["fd_slope"], row["fd_slope_ci"] = mean_and_interval(slope)
     for name in str_list(args.estimators):
         e = jitted[name](where.problem, where.theta(delta), key, P)
-        if "particle_grads" not in e.aux:
-            raise ValueError(f"estimator {name!r} gives no aux['particle_grads'], each particle's gradient, which the "
-                             "landscape projects (estimators.base.particle_estimate adds it)")
         row[f"{name}_grad"], row[f"{name}_ci"] = mean_and_interval(projected(e.aux["particle_grads"], where.direction))
         row[f"{name}_variance"] = float(sum(jnp.sum(v) for v in jax.tree.leaves(e.grad_var)))
         row[f"{name}_nans"] = int(e.aux["nan_count"])
@@ -175,6 +172,12 @@ def run(args: Args) -> tuple[pd.DataFrame, dict, scenario_lib.Setting]:
     slice_key = jax.random.fold_in(jax.random.key(args.seed), 6)  # the value slices', apart from the rows'
     jitted = {name: jax.jit(estimators.make(name), static_argnums=3) for name in str_list(args.estimators)}
     jitted["returns"] = jax.jit(scenario_lib.particle_returns, static_argnums=3)
+    for name in str_list(args.estimators):  # traced for shapes only: nothing computed
+        estimate = jax.eval_shape(lambda pr, th, k: jitted[name](pr, th, k, args.particles), where.problem,
+                                  where.theta0, key)
+        if "particle_grads" not in estimate.aux:
+            raise ValueError(f"estimator {name!r} gives no aux['particle_grads'], each particle's gradient, which the "
+                             "landscape projects (estimators.base.particle_estimate adds it)")
     for index, delta in enumerate(args.deltas):
         row_key = dict(task=args.task, model=args.model, particles=args.particles, delta_theta=float(delta),
                        seed=args.seed, scenario=where.content, fd_step=args.fd_step, estimators=args.estimators)

@@ -72,9 +72,9 @@ particle methods sample it."""
 NOISE_FIXED_PER_RUN = {"rp_fs_run": "rp_fs", "gr_fs_run": "gr_fs"}
 """Method -> the paper's method it reads otherwise: the paper's RP_FS and GR_FS fix "the random
 seed", and it does not say for how long. ``rp_fs`` and ``gr_fs`` fix the noise for one trial's
-policy optimisation (the project's design: "fixed for the whole policy optimisation") and draw
-it afresh for the next trial; these fix it for the whole learning run, every trial optimising on the same
-particles (``learning_run(optimisation_key_per_run=True)``)."""
+policy optimisation (``estimators.base.FixedNoise``) and draw it afresh for the next trial;
+these fix it for the whole learning run, every trial optimising on the same particles
+(``learning_run(optimisation_key_per_run=True)``)."""
 
 PRESETS = {
     # learned trials (0: the task preset's), optimiser steps, particles, evaluation runs,

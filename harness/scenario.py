@@ -38,7 +38,7 @@ import numpy as np
 import estimators
 import tasks
 from estimators.base import Problem, draw_noise, per_particle, rollout, task_problem, theta_dtype
-from estimators.pilco import check_task
+from estimators.pilco import Pilco, check_task
 from harness.episodic import learning_run, policy_optimiser
 from harness.records import ROOT, load_pickle, save_pickle, source_digest
 from models import gp
@@ -331,12 +331,15 @@ def model_labels(task_name: str, models: list[str]) -> list[str]:
     return [f"- **mjx: {task.mjcf_label}** (see {os.path.basename(task.mjcf)}).", ""]
 
 
-def check_estimators(names: list[str], task: str) -> None:
-    """Fail now on an unknown estimator (with the list) or on pilco for a task without forms."""
+def check_estimators(names: list[str], task: str, models: list[str] = ()) -> None:
+    """Fail now on an unknown estimator (with the list), or on the pilco estimator for a task
+    without forms or with a model that is not learned (it moment-matches the GP)."""
     for name in names:
-        estimators.make(name)
-        if name == "pilco":
+        if isinstance(estimators.make(name), Pilco):
             check_task(tasks.make(task))
+            if unlearned := [m for m in models if not MODELS[m].learned]:
+                raise ValueError(f"the pilco estimator moment-matches the learned GP; it cannot run on the "
+                                 f"{', '.join(unlearned)} model")
 
 
 def check_model(model: str) -> None:

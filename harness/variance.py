@@ -54,7 +54,7 @@ class Args(scenario_lib.ExperimentArgs):
     def __post_init__(self):
         super().__post_init__()
         scenario_lib.check_model(self.model)
-        scenario_lib.check_estimators(str_list(self.estimators), self.task)
+        scenario_lib.check_estimators(str_list(self.estimators), self.task, [self.model])
         if self.repeats < 2:
             raise ValueError("repeats must be >= 2 to estimate a variance")
 

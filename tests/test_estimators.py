@@ -7,6 +7,7 @@ outcome is reproducible.
 """
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -28,6 +29,7 @@ def flat(tree, n):
     return np.concatenate([np.asarray(x).reshape(n, -1) for x in jax.tree.leaves(tree)], axis=1)
 
 
+@functools.cache  # estimators are hashable; the tests share batches and never modify them
 def many(est, num_particles, n, seed=0):
     """n estimates with independent keys: (value (n,), grads (n, 3), grad_var (n, 3), aux)."""
     keys = jax.random.split(jax.random.key(seed), n)
@@ -259,8 +261,8 @@ def test_reported_variance_matches_the_spread_of_estimates(name, band):
     the ratio ~3 %). For RP and LR (independent particles) it must agree: 0.85-1.15. For BIW-LR
     and TP the per-particle terms are coupled (the self-normalised weights, the leave-one-out
     baseline, k_LR), and the reported variance underestimates the spread: measured 0.41-0.60
-    (BIW-LR) and 0.55-0.68 (TP) at seeds 0 and 7. Their bands, about 4 s.e. beyond those, hold
-    it where it is: it sets the optimiser's step (``harness.optim``) and TP's k_LR."""
+    (BIW-LR) and 0.55-0.68 (TP) at seeds 0 and 7. Their bands, 3-9 s.e. beyond those, hold it
+    where it is: it sets the optimiser's step (``harness.optim``) and TP's k_LR."""
     _, grads, grad_var, _ = many(estimators.make(name), 20, 2000, seed=7)
     ratio = grad_var.mean(0) / grads.var(0, ddof=1)
     print(name, "reported / empirical variance:", ratio.round(3))
@@ -327,7 +329,7 @@ def test_wrong_shapes_are_named_while_tracing():
 
 def test_a_registry_entry_must_be_a_factory(monkeypatch):
     monkeypatch.setitem(estimators.REGISTRY, "my_rp", estimators.make("rp"))  # the estimator, not its factory
-    with pytest.raises(TypeError, match="must be a factory"):
+    with pytest.raises(TypeError, match="REGISTRY\\['my_rp'\\] is a Reparameterisation object; it must be a factory"):
         estimators.make("my_rp")
 
 

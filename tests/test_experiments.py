@@ -445,12 +445,19 @@ def test_landscape_rejects_pilco():
         landscape.main(["--estimators", "rp,pilco"])
 
 
-def test_pilco_on_a_task_without_forms_fails_before_any_computation(monkeypatch):
-    """A task without forms (a new one) cannot be moment-matched: every entry point that would
-    run pilco says so up front, naming the Task properties to add."""
-    from harness import learn, landscape
+def test_pilco_where_it_cannot_run_fails_before_any_computation(monkeypatch):
+    """A task without forms (a new one) cannot be moment-matched, nor can a true-dynamics model:
+    every entry point that would run pilco says so before it builds a scenario or learns."""
+    from harness import learn, landscape, scenario
     from tasks.cartpole import CartPole
 
+    def computes(*args, **kwargs):
+        raise AssertionError("computed before refusing")
+
+    monkeypatch.setattr(scenario, "build", computes)
+    monkeypatch.setattr(learn, "run_experiments", computes)
+    with pytest.raises(ValueError, match="cannot run on the jax model"):
+        variance.main(["--model", "jax", "--estimators", "rp,pilco", "--scenario-estimator", "tp"])
     monkeypatch.setattr(CartPole, "cost_form", property(lambda self: None))
     for main, argv in ((variance.main, []), (variance.main, ["--scenario-estimator", "tp", "--estimators", "pilco"]),
                        (landscape.main, []), (learn.main, ["--methods", "tp,pilco"])):

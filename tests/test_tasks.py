@@ -42,11 +42,16 @@ def test_step_matches_reference(name):
 def test_forms_are_the_task_functions(name):
     """PILCO moment-matches the forms (policy_feature_map, gp_feature_map, cost_form), the
     particle methods evaluate the functions: at a point (zero covariance) they must agree, for
-    every registered task that declares forms (a new task's forms included). 1e-12."""
+    every registered task that declares forms (a new task's included), to 1e-12. (The
+    cart-pole defines its functions through its forms, so for it only the cost's moment formula
+    at zero covariance is checked against the form; the unicycle's functions are written apart.)"""
+    from estimators.pilco import check_task
     from models.form_moments import expected_cost
 
     task = tasks.make(name)
-    if task.cost_form is None:
+    try:
+        check_task(task)
+    except ValueError:
         pytest.skip(f"{name} declares no forms (particle estimators only)")
     points = jax.random.normal(jax.random.key(0), (8, task.model_state_dim))
     zero = jnp.zeros((task.model_state_dim, task.model_state_dim))
