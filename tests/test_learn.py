@@ -252,12 +252,31 @@ def test_a_batched_learning_run_is_each_seed_run_alone():
 
 
 @pytest.mark.slow
+def test_the_local_engine_writes_the_rows_of_each_cell_run_alone(tmp_path):
+    """The local process pool (two spawned workers) runs each cell as ``harness.learn`` does:
+    a two-cell sweep writes the rows of the same cells run here one after the other (all but
+    the timing column; to round-off: the same computation in other processes). Slow: the
+    workers compile everything anew."""
+    from harness import sweep
+
+    argv = ["--cells", "0,1", "--repeats", "1", "--methods", "tp", "--learn-args", " ".join(TINY[2:])]
+    sweep.main(argv + ["--engine", "local", "--workers", "2", "--out", str(tmp_path / "pool")])
+    alone = sweep.parse(sweep.Args, argv + ["--out", str(tmp_path / "alone")])
+    for cell in alone.chosen_cells():
+        sweep.run_cell(alone.learn_argv(cell))
+    for name in ("learn_cartpole_angle_k0.01_quick.csv", "learn_cartpole_angle_k1_quick.csv"):
+        pool = pd.read_csv(tmp_path / "pool" / name).drop(columns="seconds")
+        assert len(pool) == 2  # 1 random + 1 learned trial
+        pd.testing.assert_frame_equal(pool, pd.read_csv(tmp_path / "alone" / name).drop(columns="seconds"),
+                                      check_exact=False, rtol=1e-9)
+
+
+@pytest.mark.slow
 def test_the_ray_engine_writes_the_local_engines_rows(tmp_path):
     """A two-cell sweep (cart-pole, angle cost, k = 0.01 and 1) on a local Ray instance writes
     the rows that the local process pool writes for the same cells and seeds (all but the
     timing column; equal to round-off: the same computation in other processes). Slow (both
-    engines start processes that compile everything anew); it is also the test of the local
-    engine."""
+    engines start processes that compile everything anew)."""
     ray = pytest.importorskip("ray", reason='the ray extra: pip install -e ".[ray]"')
     from harness import sweep
 
