@@ -50,7 +50,7 @@ class LinearGaussianSystem:
     def predict(self, params, s: jax.Array, u: jax.Array) -> Prediction:
         """Model interface for one particle: mean ``A s + B u``, the two variances."""
         del params
-        mean = _array(self.A) @ s + _array(self.B) @ u
+        mean = _array(self.A).astype(s.dtype) @ s + _array(self.B).astype(s.dtype) @ u
         return Prediction(mean, _array(self.model_var).astype(s.dtype), _array(self.noise_var).astype(s.dtype))
 
     def next_state_moments(self, params, z_mean: jax.Array, z_cov: jax.Array, model_var_scale: float = 1.0,
