@@ -1,0 +1,73 @@
+"""Does vmap change float32 estimates beyond round-off under the installed jaxlib? (jaxlib 0.10.2's
+CPU backend does: jax-ml/jax#39103.) Not part of the harness: the provenance of the numbers in
+the README's jax 0.10.2 entry. Run it under each jaxlib to compare (a venv with ``jax==0.10.1``):
+
+    python reports/diagnostics/vmap_float32_check.py
+
+1. The linear-Gaussian system, BIW-LR at P = 20, 200 keys batched against each key alone: the
+   relative error of every estimate's gradient (0.10.2: wrong from the 82nd key; 0.10.1: 2e-7).
+2. The cart-pole on a GP fitted to 60 random transitions, BIW-LR and TP at P = 300 in float32,
+   5 keys batched as the learning runs batch seeds (run it with the jobs' XLA_FLAGS): the
+   gradient batched against alone, and the effective sample sizes of the first three steps
+   against float64. Round-off amplified through exploding particle gradients makes the first
+   comparison large under any jaxlib; compare versions, not the number with zero.
+"""
+
+import dataclasses
+import sys
+
+import jax
+
+jax.config.update("jax_enable_x64", True)  # before anything computes (the tests' module does at import)
+
+import jax.numpy as jnp  # noqa: E402
+import jaxlib  # noqa: E402
+import numpy as np  # noqa: E402
+
+import estimators  # noqa: E402
+from harness.episodic import cast_floating  # noqa: E402
+
+sys.path.insert(0, "tests")
+from test_estimators import PROBLEM, THETA, cartpole_gp_problem  # noqa: E402
+
+
+def flat_grads(estimate, batch: int) -> np.ndarray:
+    """(batch, parameters) of a batched estimate's gradient, as float64."""
+    return np.concatenate([np.asarray(leaf, float).reshape(batch, -1) for leaf in jax.tree.leaves(estimate.grad)], 1)
+
+
+def batched_and_alone(est, problem, theta, keys, num_particles):
+    """The estimates of ``keys`` vmapped in one jitted program, and each key's alone (stacked)."""
+    batched = jax.jit(jax.vmap(lambda pr, th, k: est(pr, th, k, num_particles), in_axes=(None, None, 0)))
+    alone = jax.jit(lambda pr, th, k: est(pr, th, k, num_particles))
+    each = [alone(problem, theta, k) for k in keys]
+    return batched(problem, theta, keys), jax.tree.map(lambda *leaves: jnp.stack(leaves), *each)
+
+
+def main() -> None:
+    print("jax", jax.__version__, "jaxlib", jaxlib.__version__)
+    theta32 = cast_floating(THETA, jnp.float32)
+    keys = jax.random.split(jax.random.key(0), 200)
+    batched, alone = batched_and_alone(estimators.make("biw_lr"), PROBLEM, theta32, keys, 20)
+    g_b, g_a = flat_grads(batched, 200), flat_grads(alone, 200)
+    error = np.abs(g_b - g_a).max(1) / np.abs(g_a).max(1)
+    wrong = np.flatnonzero(error > 1e-5)
+    print(f"linear-Gaussian, BIW-LR, P = 20, float32, 200 keys: max relative error {error.max():.1e}; "
+          f"{len(wrong)} wrong (> 1e-5){f', the first at key {wrong[0]}' if len(wrong) else ''}")
+
+    problem, theta = cartpole_gp_problem()
+    problem32 = dataclasses.replace(problem, model_params=cast_floating(problem.model_params, jnp.float32))
+    keys = jax.random.split(jax.random.key(1), 5)
+    for name in ("biw_lr", "tp"):
+        est = estimators.make(name)
+        b32, a32 = batched_and_alone(est, problem32, cast_floating(theta, jnp.float32), keys, 300)
+        b64, _ = batched_and_alone(est, problem, theta, keys, 300)
+        g_b, g_a = flat_grads(b32, 5), flat_grads(a32, 5)
+        per_key = np.abs(g_b - g_a).max(1) / np.abs(g_a).max(1)
+        ess = np.abs(np.asarray(b32.aux["ess"], float)[:, :3] / np.asarray(b64.aux["ess"])[:, :3] - 1).max()
+        print(f"cart-pole GP, {name}, P = 300, float32, 5 keys: gradient batched vs alone {per_key.min():.2f}-"
+              f"{per_key.max():.2f} of its largest entry; first 3 steps' ESS vs float64 {ess:.1e}")
+
+
+if __name__ == "__main__":
+    main()
