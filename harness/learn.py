@@ -36,6 +36,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+import jaxlib
 import numpy as np
 
 import tasks
@@ -68,6 +69,10 @@ variants change the model's variances, not the estimator. ``pilco-sigma_n`` is p
 reading of PILCO's step: the latent function's variance propagated without the learned noise
 sn^2 (``gp/gp0d.m``, ``base/propagate.m``), where ``pilco`` adds sn^2 to every next state as the
 particle methods sample it."""
+
+JAX_VERSIONS = f"jax {jax.__version__}, jaxlib {jaxlib.__version__}"
+"""Saved with every checkpoint: a resume under other versions says so (round-off, and bugs such
+as jaxlib 0.10.2's, differ between them)."""
 
 NOISE_FIXED_PER_RUN = {"rp_fs_run": "rp_fs", "gr_fs_run": "gr_fs"}
 """Method -> the paper's method it reads otherwise: the paper's RP_FS and GR_FS fix "the random
@@ -228,6 +233,10 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     if resume is not None:
         print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: resuming after trial {resume.trials_done}/{num_trials}"
               f" ({checkpoint})", file=sys.stderr, flush=True)
+        if (written := saved.get("jax", "unrecorded jax")) != JAX_VERSIONS:
+            print(f"  WARNING: the checkpoint's trials ran under {written}, this process under {JAX_VERSIONS}: the "
+                  "batch's trials would mix library versions (README: the jax 0.10.2 entry)", file=sys.stderr,
+                  flush=True)
     start = time.perf_counter() - (rows[-1]["seconds"] if rows else 0.0)
 
     def on_trial(record, data):
@@ -246,7 +255,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
                              eval_std=float(scores[i].std(ddof=1)) if scores.shape[1] > 1 else np.nan,
                              data_points=int(num_valid[i]), nonfinite_steps=float(nonfinite[i]), seconds=seconds,
                              code_version=code_version()))
-        save_pickle(dict(state=RunState(record.trial + 1, record.theta, data), rows=rows), checkpoint)
+        save_pickle(dict(state=RunState(record.trial + 1, record.theta, data), rows=rows, jax=JAX_VERSIONS), checkpoint)
         evaluation = f", evaluation mean {scores.mean():.2f}" if record.learned else ""
         if np.nansum(nonfinite) > 0:
             evaluation += f", NON-FINITE estimates in {nonfinite.astype(int).tolist()} optimiser steps"

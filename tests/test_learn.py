@@ -71,12 +71,15 @@ def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_p
     monkeypatch.setattr(learn, "evaluate_policy", real)
     [checkpoint] = carried.iterdir()  # as one written before rows carried their code version
     saved = records.load_pickle(str(checkpoint))
-    records.save_pickle(dict(saved, rows=[{n: v for n, v in r.items() if n != "code_version"} for r in saved["rows"]]),
+    assert saved["jax"] == learn.JAX_VERSIONS
+    records.save_pickle(dict(state=saved["state"],  # and before checkpoints named their jax version
+                             rows=[{n: v for n, v in r.items() if n != "code_version"} for r in saved["rows"]]),
                         str(checkpoint))
     capsys.readouterr()
     learn.main(argv + ["--out", str(out)])
     progress = capsys.readouterr().err
     assert "tp repeats 0-1: resuming after trial 2/3" in progress and "trial 2/3," not in progress
+    assert f"ran under unrecorded jax, this process under {learn.JAX_VERSIONS}" in progress
     resumed = records.read_csv(str(out / "learn_cartpole_angle_k1_quick.csv"))
     columns = ["repeat", "trial", "learned", "trial_return", "eval_mean", "data_points"]
     pd.testing.assert_frame_equal(resumed[columns], whole[columns], check_exact=False, rtol=1e-9)
