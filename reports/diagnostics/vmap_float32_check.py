@@ -29,41 +29,42 @@ import estimators  # noqa: E402
 from harness.episodic import cast_floating  # noqa: E402
 
 sys.path.insert(0, "tests")
-from test_estimators import PROBLEM, THETA, cartpole_gp_problem  # noqa: E402
+from test_estimators import PROBLEM, THETA, cartpole_gp_problem, flat  # noqa: E402
 
 
-def flat_grads(estimate, batch: int) -> np.ndarray:
-    """(batch, parameters) of a batched estimate's gradient, as float64."""
-    return np.concatenate([np.asarray(leaf, float).reshape(batch, -1) for leaf in jax.tree.leaves(estimate.grad)], 1)
+def batched(est, problem, theta, keys, num_particles):
+    """The estimates of ``keys`` vmapped in one jitted program."""
+    run = jax.jit(jax.vmap(lambda pr, th, k: est(pr, th, k, num_particles), in_axes=(None, None, 0)))
+    return run(problem, theta, keys)
 
 
-def batched_and_alone(est, problem, theta, keys, num_particles):
-    """The estimates of ``keys`` vmapped in one jitted program, and each key's alone (stacked)."""
-    batched = jax.jit(jax.vmap(lambda pr, th, k: est(pr, th, k, num_particles), in_axes=(None, None, 0)))
-    alone = jax.jit(lambda pr, th, k: est(pr, th, k, num_particles))
-    each = [alone(problem, theta, k) for k in keys]
-    return batched(problem, theta, keys), jax.tree.map(lambda *leaves: jnp.stack(leaves), *each)
+def alone(est, problem, theta, keys, num_particles):
+    """Each key's estimate from the unbatched jitted program, stacked as ``batched``'s."""
+    run = jax.jit(lambda pr, th, k: est(pr, th, k, num_particles))
+    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *[run(problem, theta, k) for k in keys])
 
 
 def main() -> None:
     print("jax", jax.__version__, "jaxlib", jaxlib.__version__)
     theta32 = cast_floating(THETA, jnp.float32)
     keys = jax.random.split(jax.random.key(0), 200)
-    batched, alone = batched_and_alone(estimators.make("biw_lr"), PROBLEM, theta32, keys, 20)
-    g_b, g_a = flat_grads(batched, 200), flat_grads(alone, 200)
+    est = estimators.make("biw_lr")
+    g_b = flat(batched(est, PROBLEM, theta32, keys, 20).grad, 200).astype(float)
+    g_a = flat(alone(est, PROBLEM, theta32, keys, 20).grad, 200).astype(float)
     error = np.abs(g_b - g_a).max(1) / np.abs(g_a).max(1)
     wrong = np.flatnonzero(error > 1e-5)
     print(f"linear-Gaussian, BIW-LR, P = 20, float32, 200 keys: max relative error {error.max():.1e}; "
-          f"{len(wrong)} wrong (> 1e-5){f', the first at key {wrong[0]}' if len(wrong) else ''}")
+          f"{len(wrong)} wrong (> 1e-5){f', the first at index {wrong[0]}' if len(wrong) else ''}")
 
     problem, theta = cartpole_gp_problem()
     problem32 = dataclasses.replace(problem, model_params=cast_floating(problem.model_params, jnp.float32))
     keys = jax.random.split(jax.random.key(1), 5)
     for name in ("biw_lr", "tp"):
         est = estimators.make(name)
-        b32, a32 = batched_and_alone(est, problem32, cast_floating(theta, jnp.float32), keys, 300)
-        b64, _ = batched_and_alone(est, problem, theta, keys, 300)
-        g_b, g_a = flat_grads(b32, 5), flat_grads(a32, 5)
+        theta32 = cast_floating(theta, jnp.float32)
+        b32, a32 = batched(est, problem32, theta32, keys, 300), alone(est, problem32, theta32, keys, 300)
+        b64 = batched(est, problem, theta, keys, 300)
+        g_b, g_a = flat(b32.grad, 5).astype(float), flat(a32.grad, 5).astype(float)
         per_key = np.abs(g_b - g_a).max(1) / np.abs(g_a).max(1)
         ess = np.abs(np.asarray(b32.aux["ess"], float)[:, :3] / np.asarray(b64.aux["ess"])[:, :3] - 1).max()
         print(f"cart-pole GP, {name}, P = 300, float32, 5 keys: gradient batched vs alone {per_key.min():.2f}-"
