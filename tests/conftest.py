@@ -7,8 +7,11 @@ XLA_FLAGS win over it."""
 import json
 import os
 
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):  # before JAX starts its backend
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
+_flags = os.environ.get("XLA_FLAGS", "")
+if "xla_backend_optimization_level" not in _flags and (not _flags or _flags.startswith("--")):
+    # before JAX starts its backend; in front, since XLA reads no flag after a token without "--"
+    # (and takes XLA_FLAGS not starting with "--" for a file of flags, left as it is)
+    os.environ["XLA_FLAGS"] = f"--xla_backend_optimization_level=0 {_flags}".strip()
 
 import jax
 import jax.numpy as jnp

@@ -1,0 +1,172 @@
+"""Do the learning runs' programs meet jaxlib 0.10.2's wrong-results bug? Not part of the harness:
+the provenance of the numbers in the README's jax 0.10.2 entry.
+
+    python reports/diagnostics/ynn_reduce_check.py
+
+The bug (jax-ml/jax#39103) lies in XLA:CPU's YNNPACK reduce fusions: with
+``XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=-reduce`` the BIW-LR test that fails under
+0.10.2 (``tests/test_estimators.py::test_float32_estimates_batched_are_each_estimate_alone``)
+passes (1.5e-6 of the largest entry, against 17 x without the flag). This script compiles each
+program of a k = 1 learning trial at the jobs' shape (5 seeds vmapped, P = 300, the jobs'
+XLA_FLAGS) three times, each in its own process: as the jobs do ("default"), with YNN reduce
+fusion off ("off"), and, for the float32 particle estimators, off in float64 ("f64"); then
+prints how far apart they are. Inputs: the cart-pole (angle cost, k = 1), 5 seeds with 6 and
+11 random episodes (180 rows: the full GP; 330: FITC with 300 inducing inputs), a GP fitted with
+30 L-BFGS steps, and each seed's initial policy. A program the bug hits differs between
+default and off far beyond round-off; the float32 estimators' default-vs-f64 gap must then be
+far above their off-vs-f64 gap (round-off grows along the rollout, so compare the columns).
+The FITC fit's 100 L-BFGS steps on the inducing inputs can carry round-off into a different
+path: its FITC objective and posterior are also compared at fixed inputs, and a control fits
+data moved by 1e-12 (relative) with YNN reduce fusion off, to show how far round-off alone
+moves the fit.
+"""
+
+import os
+import pickle
+import subprocess
+import sys
+import tempfile
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import jaxlib  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", ".."))
+import estimators  # noqa: E402
+import tasks  # noqa: E402
+from estimators.base import task_problem  # noqa: E402
+from estimators.pilco import pilco_objective  # noqa: E402
+from harness.episodic import add_episode, cast_floating, data_capacity, evaluate_policy  # noqa: E402
+from models import gp, sparse_gp  # noqa: E402
+from tasks.rollout import run_episode  # noqa: E402
+
+JOBS_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+"""The learning jobs' XLA_FLAGS (XLA reads no flag after the second, unprefixed one: put others first)."""
+YNN_REDUCE_OFF = "--xla_cpu_experimental_ynn_fusion_type=-reduce"
+TASK = tasks.make("cartpole", cost="angle", noise_k=1.0)
+SEEDS, PARTICLES, INDUCING, EPISODES = 5, 300, 300, (6, 11)
+ESTIMATORS = {"tp": (5, TASK.horizon), "gr": (5, TASK.horizon), "rp": (5,), "biw_lr": (5,)}
+"""Estimator -> horizons: 5 steps, where round-off has not yet grown, and the task's 30."""
+
+
+def flat(tree) -> np.ndarray:
+    """(SEEDS, n): every leaf of a seed-batched pytree, flattened side by side."""
+    return np.concatenate([np.asarray(x, float).reshape(SEEDS, -1) for x in jax.tree.leaves(tree)], 1)
+
+
+def ynn_reduce_fusions(jitted, *args) -> int:
+    """How many YNN fusions of the compiled program reduce."""
+    text = jitted.lower(*args).compile().as_text()
+    return sum(1 for line in text.splitlines() if "__ynn_fusion" in line and "reduce" in line)
+
+
+def random_data(episodes: int):
+    """(GPData batched over SEEDS, theta batched): ``episodes`` random trials per seed."""
+    keys = jax.vmap(jax.random.key)(jnp.arange(SEEDS))
+    data = gp.GPModel(TASK).empty_data(data_capacity(TASK))
+    data = jax.tree.map(lambda x: jnp.broadcast_to(x, (SEEDS,) + x.shape), data)
+    for e in range(episodes):
+        episode = jax.vmap(lambda k: run_episode(TASK, jax.random.fold_in(k, e)))(keys)
+        data = jax.vmap(lambda d, ep: add_episode(TASK, d, ep))(data, episode)
+    theta = jax.vmap(lambda k: TASK.default_policy().init(jax.random.fold_in(k, 10_000)))(keys)
+    return data, theta
+
+
+def fit(data):
+    """The learning trial's fit (``sparse_gp.fitter``, the full GP trimmed to whole episodes)."""
+    rows = int(np.max(np.asarray(data.num_valid)))
+    posterior = jax.vmap(sparse_gp.fitter(INDUCING, rows, 30))(data)
+    if not sparse_gp.uses_fitc(INDUCING, rows):
+        posterior = gp.truncate(posterior, -(-rows // TASK.horizon) * TASK.horizon)
+    return posterior
+
+
+def child(mode: str, folder: str) -> None:
+    """Run every program under this process's XLA_FLAGS; save ``{mode}.pkl``: name -> (array, fusions)."""
+    out, control, keys = {}, {}, jax.vmap(lambda s: jax.random.fold_in(jax.random.key(s), 7))(jnp.arange(SEEDS))
+    dtype = jnp.float64 if mode == "f64" else jnp.float32
+    for episodes in EPISODES:
+        data, theta = random_data(episodes)
+        rows = f"{episodes * TASK.horizon} rows"
+        posterior_file = os.path.join(folder, f"posterior_{episodes}.pkl")
+        if mode != "f64":
+            posterior = fit(data)
+            out[f"{rows}, GP fit (float64)"] = (flat(posterior), None)
+        if mode == "off":
+            with open(posterior_file, "wb") as f:
+                pickle.dump(jax.device_get(posterior), f)
+        with open(posterior_file, "rb") as f:
+            posterior = pickle.load(f)  # every mode runs the programs below on off's fit
+        if mode != "f64" and sparse_gp.uses_fitc(INDUCING, episodes * TASK.horizon):
+            nlml = jax.jit(jax.vmap(jax.value_and_grad(sparse_gp.fitc_neg_log_marginal_likelihood)))
+            start = jax.vmap(lambda d: sparse_gp.initial_inducing(d, INDUCING))(data)
+            value, grad = nlml(start, posterior.log_hyp, data)
+            out[f"{rows}, FITC NLML and gradient at the initial inducing inputs (float64)"] = (
+                np.concatenate([np.asarray(value)[:, None], flat(grad)], 1),
+                ynn_reduce_fusions(nlml, start, posterior.log_hyp, data))
+            fitc = jax.vmap(sparse_gp.fitc_posterior)
+            out[f"{rows}, FITC posterior at off's inducing inputs (float64)"] = (
+                flat(fitc(posterior.inputs, posterior.log_hyp, data)), None)
+            if mode == "off":  # how far the fit moves for a change of the data at round-off
+                moved = data._replace(inputs=data.inputs * (1 + 1e-12), targets=data.targets * (1 + 1e-12))
+                control[rows] = (flat(fit(moved)), out[f"{rows}, GP fit (float64)"][0])
+        if mode != "f64":
+            problem = task_problem(TASK, gp.GPModel(TASK), posterior)
+            pilco = jax.jit(jax.vmap(jax.value_and_grad(lambda pr, th: pilco_objective(pr, th)[0], argnums=1)))
+            value, grad = pilco(problem, theta)
+            out[f"{rows}, PILCO value and gradient (float64)"] = (
+                np.concatenate([np.asarray(value)[:, None], flat(grad)], 1), ynn_reduce_fusions(pilco, problem, theta))
+            evaluate = jax.jit(jax.vmap(lambda th, k: evaluate_policy(TASK, problem.policy, th, k, num_runs=30)))
+            out[f"{rows}, evaluation, 30 runs (float64)"] = (np.asarray(evaluate(theta, keys)),
+                                                             ynn_reduce_fusions(evaluate, theta, keys))
+        for name, horizons in ESTIMATORS.items():
+            est = estimators.make(name)
+            run = jax.jit(jax.vmap(lambda pr, th, k: est(pr, th, k, PARTICLES)))
+            for horizon in horizons:
+                problem = task_problem(TASK, gp.GPModel(TASK), cast_floating(posterior, dtype), horizon=horizon)
+                args = (problem, cast_floating(theta, dtype), keys)
+                estimate = run(*args)
+                out[f"{rows}, {name} gradient, P = {PARTICLES}, T = {horizon} (float32)"] = (
+                    np.concatenate([np.asarray(estimate.value, float)[:, None], flat(estimate.grad)], 1),
+                    ynn_reduce_fusions(run, *args))
+        print(f"  {mode}: {rows} done", file=sys.stderr, flush=True)
+    with open(os.path.join(folder, f"{mode}.pkl"), "wb") as f:
+        pickle.dump((out, control), f)
+
+
+def gap(a: np.ndarray, b: np.ndarray) -> str:
+    """The per-seed max |a - b| / max |b|, as its range over the seeds."""
+    per_seed = np.abs(a - b).max(1) / np.abs(b).max(1)
+    return f"{per_seed.min():.1e}-{per_seed.max():.1e}"
+
+
+def main() -> None:
+    print("jax", jax.__version__, "jaxlib", jaxlib.__version__)
+    with tempfile.TemporaryDirectory() as folder:
+        for mode, flags in (("off", f"{YNN_REDUCE_OFF} {JOBS_FLAGS}"), ("default", JOBS_FLAGS),
+                            ("f64", f"{YNN_REDUCE_OFF} {JOBS_FLAGS}")):
+            subprocess.run([sys.executable, __file__, mode, folder], check=True,
+                           env=os.environ | {"XLA_FLAGS": flags})
+        results, controls = {}, {}
+        for mode in ("default", "off", "f64"):
+            with open(os.path.join(folder, f"{mode}.pkl"), "rb") as f:
+                results[mode], controls[mode] = pickle.load(f)
+    print("program | YNN reduce fusions (default) | default vs off | off vs f64 | default vs f64 "
+          "(per seed: max |difference| / max |reference|, range over 5 seeds; value and gradient together)")
+    for name, (default, fusions) in results["default"].items():
+        off = results["off"][name][0]
+        line = f"{name} | {'-' if fusions is None else fusions} | {gap(default, off)}"
+        if name in results["f64"]:
+            f64 = results["f64"][name][0]
+            line += f" | {gap(off, f64)} | {gap(default, f64)}"
+        print(line)
+    for rows, (moved, fitted) in controls["off"].items():
+        print(f"control: {rows}, GP fit (float64) to the data times 1 + 1e-12 against the fit to the data, both off: "
+              f"{gap(moved, fitted)}")
+
+if __name__ == "__main__":
+    child(*sys.argv[1:]) if len(sys.argv) > 1 else main()
