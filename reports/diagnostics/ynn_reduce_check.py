@@ -1,7 +1,7 @@
 """Do the learning runs' programs meet jaxlib 0.10.2's wrong-results bug? Not part of the harness:
 the provenance of the numbers in the README's jax 0.10.2 entry.
 
-    python reports/diagnostics/ynn_reduce_check.py
+    python reports/diagnostics/ynn_reduce_check.py [--full-gp-sizes]
 
 The bug (jax-ml/jax#39103) lies in XLA:CPU's YNNPACK reduce fusions: with
 ``XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=-reduce`` the BIW-LR test that fails under
@@ -18,7 +18,9 @@ far above their off-vs-f64 gap (round-off grows along the rollout, so compare th
 The FITC fit's 100 L-BFGS steps on the inducing inputs can carry round-off into a different
 path: its FITC objective and posterior are also compared at fixed inputs, and a control fits
 data moved by 1e-12 (relative) with YNN reduce fusion off, to show how far round-off alone
-moves the fit.
+moves the fit. ``--full-gp-sizes``: the programs whose shape follows the full GP's rows at the
+run's other sizes (PILCO's value and gradient, the estimates at T = 5), as run and with the
+fusions off only.
 """
 
 import os
@@ -49,6 +51,10 @@ JOBS_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 YNN_REDUCE_OFF = "--xla_cpu_experimental_ynn_fusion_type=-reduce"
 TASK = tasks.make("cartpole", cost="angle", noise_k=1.0)
 SEEDS, PARTICLES, INDUCING, EPISODES = 5, 300, 300, (6, 11)
+FULL_GP_EPISODES = (1, 2, 3, 4, 5, 7, 8, 9, 10)
+"""``--full-gp-sizes``: the other sizes of the full GP the optimiser runs on (30-300 rows, trimmed
+to whole episodes); a fit's own shape is the buffer's (480 rows) at every size, and FITC's
+posterior has 300 inducing inputs at every size."""
 ESTIMATORS = {"tp": (5, TASK.horizon), "gr": (5, TASK.horizon), "rp": (5,), "biw_lr": (5,)}
 """Estimator -> horizons: 5 steps, where round-off has not yet grown, and the task's 30."""
 
@@ -85,15 +91,18 @@ def fit(data):
     return posterior
 
 
-def child(mode: str, folder: str) -> None:
-    """Run every program under this process's XLA_FLAGS; save ``{mode}.pkl``: name -> (array, fusions)."""
+def child(mode: str, folder: str, sizes: str) -> None:
+    """Run every program under this process's XLA_FLAGS; save ``{mode}.pkl``: name -> (array, fusions).
+    ``sizes`` (episodes, comma-separated; "" for ``EPISODES``): only the programs whose shape
+    follows the full GP's rows, PILCO's and the T = 5 estimates, with no comparison of fits."""
     out, control, keys = {}, {}, jax.vmap(lambda s: jax.random.fold_in(jax.random.key(s), 7))(jnp.arange(SEEDS))
     dtype = jnp.float64 if mode == "f64" else jnp.float32
-    for episodes in EPISODES:
+    every_program = not sizes
+    for episodes in [int(e) for e in sizes.split(",")] if sizes else EPISODES:
         data, theta = random_data(episodes)
         rows = f"{episodes * TASK.horizon} rows"
         posterior_file = os.path.join(folder, f"posterior_{episodes}.pkl")
-        if mode != "f64":
+        if mode == "off" or (mode == "default" and every_program):
             posterior = fit(data)
             out[f"{rows}, GP fit (float64)"] = (flat(posterior), None)
         if mode == "off":
@@ -101,7 +110,7 @@ def child(mode: str, folder: str) -> None:
                 pickle.dump(jax.device_get(posterior), f)
         with open(posterior_file, "rb") as f:
             posterior = pickle.load(f)  # every mode runs the programs below on off's fit
-        if mode != "f64" and sparse_gp.uses_fitc(INDUCING, episodes * TASK.horizon):
+        if mode != "f64" and every_program and sparse_gp.uses_fitc(INDUCING, episodes * TASK.horizon):
             nlml = jax.jit(jax.vmap(jax.value_and_grad(sparse_gp.fitc_neg_log_marginal_likelihood)))
             start = jax.vmap(lambda d: sparse_gp.initial_inducing(d, INDUCING))(data)
             value, grad = nlml(start, posterior.log_hyp, data)
@@ -120,13 +129,14 @@ def child(mode: str, folder: str) -> None:
             value, grad = pilco(problem, theta)
             out[f"{rows}, PILCO value and gradient (float64)"] = (
                 np.concatenate([np.asarray(value)[:, None], flat(grad)], 1), ynn_reduce_fusions(pilco, problem, theta))
+        if mode != "f64" and every_program:
             evaluate = jax.jit(jax.vmap(lambda th, k: evaluate_policy(TASK, problem.policy, th, k, num_runs=30)))
             out[f"{rows}, evaluation, 30 runs (float64)"] = (np.asarray(evaluate(theta, keys)),
                                                              ynn_reduce_fusions(evaluate, theta, keys))
         for name, horizons in ESTIMATORS.items():
             est = estimators.make(name)
             run = jax.jit(jax.vmap(lambda pr, th, k: est(pr, th, k, PARTICLES)))
-            for horizon in horizons:
+            for horizon in horizons if every_program else horizons[:1]:
                 problem = task_problem(TASK, gp.GPModel(TASK), cast_floating(posterior, dtype), horizon=horizon)
                 args = (problem, cast_floating(theta, dtype), keys)
                 estimate = run(*args)
@@ -145,22 +155,23 @@ def gap(a: np.ndarray, b: np.ndarray) -> str:
 
 
 def main() -> None:
+    sizes = ",".join(str(e) for e in FULL_GP_EPISODES) if "--full-gp-sizes" in sys.argv else ""
+    modes = (("off", f"{YNN_REDUCE_OFF} {JOBS_FLAGS}"), ("default", JOBS_FLAGS))
+    modes += () if sizes else (("f64", f"{YNN_REDUCE_OFF} {JOBS_FLAGS}"),)
     print("jax", jax.__version__, "jaxlib", jaxlib.__version__)
     with tempfile.TemporaryDirectory() as folder:
-        for mode, flags in (("off", f"{YNN_REDUCE_OFF} {JOBS_FLAGS}"), ("default", JOBS_FLAGS),
-                            ("f64", f"{YNN_REDUCE_OFF} {JOBS_FLAGS}")):
-            subprocess.run([sys.executable, __file__, mode, folder], check=True,
-                           env=os.environ | {"XLA_FLAGS": flags})
         results, controls = {}, {}
-        for mode in ("default", "off", "f64"):
+        for mode, flags in modes:
+            subprocess.run([sys.executable, __file__, mode, folder, sizes], check=True,
+                           env=os.environ | {"XLA_FLAGS": flags})
             with open(os.path.join(folder, f"{mode}.pkl"), "rb") as f:
                 results[mode], controls[mode] = pickle.load(f)
-    print("program | YNN reduce fusions (default) | default vs off | off vs f64 | default vs f64 "
+    print(f"program | YNN reduce fusions (default) | default vs off{'' if sizes else ' | off vs f64 | default vs f64'} "
           "(per seed: max |difference| / max |reference|, range over 5 seeds; value and gradient together)")
     for name, (default, fusions) in results["default"].items():
         off = results["off"][name][0]
         line = f"{name} | {'-' if fusions is None else fusions} | {gap(default, off)}"
-        if name in results["f64"]:
+        if name in results.get("f64", {}):
             f64 = results["f64"][name][0]
             line += f" | {gap(off, f64)} | {gap(default, f64)}"
         print(line)
@@ -168,5 +179,6 @@ def main() -> None:
         print(f"control: {rows}, GP fit (float64) to the data times 1 + 1e-12 against the fit to the data, both off: "
               f"{gap(moved, fitted)}")
 
+
 if __name__ == "__main__":
-    child(*sys.argv[1:]) if len(sys.argv) > 1 else main()
+    child(*sys.argv[1:]) if len(sys.argv) > 1 and sys.argv[1] != "--full-gp-sizes" else main()
