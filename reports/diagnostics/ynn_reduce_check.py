@@ -1,7 +1,7 @@
 """Do the learning runs' programs meet jaxlib 0.10.2's wrong-results bug? Not part of the harness:
 the provenance of the numbers in the README's jax 0.10.2 entry.
 
-    python reports/diagnostics/ynn_reduce_check.py [--full-gp-sizes]
+    python reports/diagnostics/ynn_reduce_check.py [--full-gp-sizes | --optimiser]
 
 The bug (jax-ml/jax#39103) lies in XLA:CPU's YNNPACK reduce fusions: with
 ``XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=-reduce`` the BIW-LR test that fails under
@@ -20,7 +20,8 @@ path: its FITC objective and posterior are also compared at fixed inputs, and a 
 data moved by 1e-12 (relative) with YNN reduce fusion off, to show how far round-off alone
 moves the fit. ``--full-gp-sizes``: the programs whose shape follows the full GP's rows at the
 run's other sizes (PILCO's value and gradient, the estimates at T = 5), as run and with the
-fusions off only.
+fusions off only. ``--optimiser``: the policy optimisation program itself (the estimate inside
+the optimiser's scan, fused anew), with 2 steps, as run and with the fusions off.
 """
 
 import os
@@ -42,7 +43,8 @@ import estimators  # noqa: E402
 import tasks  # noqa: E402
 from estimators.base import task_problem  # noqa: E402
 from estimators.pilco import pilco_objective  # noqa: E402
-from harness.episodic import add_episode, cast_floating, data_capacity, evaluate_policy  # noqa: E402
+from harness.episodic import add_episode, cast_floating, data_capacity, evaluate_policy, in_precision, \
+    policy_optimiser  # noqa: E402
 from models import gp, sparse_gp  # noqa: E402
 from tasks.rollout import run_episode  # noqa: E402
 
@@ -55,6 +57,7 @@ FULL_GP_EPISODES = (1, 2, 3, 4, 5, 7, 8, 9, 10)
 """``--full-gp-sizes``: the other sizes of the full GP the optimiser runs on (30-300 rows, trimmed
 to whole episodes); a fit's own shape is the buffer's (480 rows) at every size, and FITC's
 posterior has 300 inducing inputs at every size."""
+PARTS = ("all", "full-gp-sizes", "optimiser")
 ESTIMATORS = {"tp": (5, TASK.horizon), "gr": (5, TASK.horizon), "rp": (5,), "biw_lr": (5,)}
 """Estimator -> horizons: 5 steps, where round-off has not yet grown, and the task's 30."""
 
@@ -91,14 +94,53 @@ def fit(data):
     return posterior
 
 
-def child(mode: str, folder: str, sizes: str) -> None:
-    """Run every program under this process's XLA_FLAGS; save ``{mode}.pkl``: name -> (array, fusions).
-    ``sizes`` (episodes, comma-separated; "" for ``EPISODES``): only the programs whose shape
-    follows the full GP's rows, PILCO's and the T = 5 estimates, with no comparison of fits."""
-    out, control, keys = {}, {}, jax.vmap(lambda s: jax.random.fold_in(jax.random.key(s), 7))(jnp.arange(SEEDS))
+def child(mode: str, folder: str, part: str) -> None:
+    """Run the programs of ``part`` under this process's XLA_FLAGS; save ``{mode}.pkl``: (name ->
+    (array, fusions), controls). "all": every program at ``EPISODES``; "full-gp-sizes": at
+    ``FULL_GP_EPISODES``, the programs whose shape follows the full GP's rows, PILCO's and the
+    T = 5 estimates, with no comparison of fits; "optimiser": ``optimiser_programs``."""
+    out, control = {}, {}
+    if part == "optimiser":
+        optimiser_programs(mode, folder, out)
+    else:
+        all_programs(mode, folder, part == "all", out, control)
+    with open(os.path.join(folder, f"{mode}.pkl"), "wb") as f:
+        pickle.dump((out, control), f)
+
+
+def off_posterior(mode: str, folder: str, episodes: int, data):
+    """The fit of mode "off" (which runs first and saves it), so that every mode runs on the same GP."""
+    posterior_file = os.path.join(folder, f"posterior_{episodes}.pkl")
+    if mode == "off":
+        with open(posterior_file, "wb") as f:
+            pickle.dump(jax.device_get(fit(data)), f)
+    with open(posterior_file, "rb") as f:
+        return pickle.load(f)
+
+
+def optimiser_programs(mode: str, folder: str, out: dict) -> None:
+    """The jobs' policy optimisation program (``harness.episodic.policy_optimiser`` in float32,
+    vmapped over the seeds) with 2 steps instead of 600 (the same scan body): theta after them
+    and the 2 values, per estimator, at ``EPISODES``."""
+    keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.key(s), 7))(jnp.arange(SEEDS))
+    for episodes in EPISODES:
+        data, theta = random_data(episodes)
+        problem = task_problem(TASK, gp.GPModel(TASK), off_posterior(mode, folder, episodes, data))
+        for name in ESTIMATORS:
+            run = jax.jit(jax.vmap(in_precision(policy_optimiser(name, 2, PARTICLES), jnp.float32)))
+            result = run(problem, theta, keys)
+            label = f"{episodes * TASK.horizon} rows, {name} policy optimisation, 2 steps, P = {PARTICLES}"
+            values_and_theta = np.concatenate([np.asarray(result.values, float), flat(result.theta)], 1)
+            out[f"{label}, T = {TASK.horizon} (float32)"] = (values_and_theta,
+                                                           ynn_reduce_fusions(run, problem, theta, keys))
+        print(f"  {mode}: {episodes * TASK.horizon} rows done", file=sys.stderr, flush=True)
+
+
+def all_programs(mode: str, folder: str, every_program: bool, out: dict, control: dict) -> None:
+    """``child``'s parts "all" (``every_program``) and "full-gp-sizes"."""
+    keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.key(s), 7))(jnp.arange(SEEDS))
     dtype = jnp.float64 if mode == "f64" else jnp.float32
-    every_program = not sizes
-    for episodes in [int(e) for e in sizes.split(",")] if sizes else EPISODES:
+    for episodes in EPISODES if every_program else FULL_GP_EPISODES:
         data, theta = random_data(episodes)
         rows = f"{episodes * TASK.horizon} rows"
         posterior_file = os.path.join(folder, f"posterior_{episodes}.pkl")
@@ -144,8 +186,6 @@ def child(mode: str, folder: str, sizes: str) -> None:
                     np.concatenate([np.asarray(estimate.value, float)[:, None], flat(estimate.grad)], 1),
                     ynn_reduce_fusions(run, *args))
         print(f"  {mode}: {rows} done", file=sys.stderr, flush=True)
-    with open(os.path.join(folder, f"{mode}.pkl"), "wb") as f:
-        pickle.dump((out, control), f)
 
 
 def gap(a: np.ndarray, b: np.ndarray) -> str:
@@ -155,19 +195,22 @@ def gap(a: np.ndarray, b: np.ndarray) -> str:
 
 
 def main() -> None:
-    sizes = ",".join(str(e) for e in FULL_GP_EPISODES) if "--full-gp-sizes" in sys.argv else ""
+    part = sys.argv[1][2:] if len(sys.argv) > 1 else "all"
+    if part not in PARTS:
+        raise SystemExit(f"usage: python {sys.argv[0]} [--full-gp-sizes | --optimiser]")
     modes = (("off", f"{YNN_REDUCE_OFF} {JOBS_FLAGS}"), ("default", JOBS_FLAGS))
-    modes += () if sizes else (("f64", f"{YNN_REDUCE_OFF} {JOBS_FLAGS}"),)
+    modes += (("f64", f"{YNN_REDUCE_OFF} {JOBS_FLAGS}"),) if part == "all" else ()
     print("jax", jax.__version__, "jaxlib", jaxlib.__version__)
     with tempfile.TemporaryDirectory() as folder:
         results, controls = {}, {}
         for mode, flags in modes:
-            subprocess.run([sys.executable, __file__, mode, folder, sizes], check=True,
+            subprocess.run([sys.executable, __file__, mode, folder, part], check=True,
                            env=os.environ | {"XLA_FLAGS": flags})
             with open(os.path.join(folder, f"{mode}.pkl"), "rb") as f:
                 results[mode], controls[mode] = pickle.load(f)
-    print(f"program | YNN reduce fusions (default) | default vs off{'' if sizes else ' | off vs f64 | default vs f64'} "
-          "(per seed: max |difference| / max |reference|, range over 5 seeds; value and gradient together)")
+    f64_columns = " | off vs f64 | default vs f64" if part == "all" else ""
+    print(f"program | YNN reduce fusions (default) | default vs off{f64_columns} (per seed: max |difference| / "
+          "max |reference|, range over 5 seeds; value and gradient together)")
     for name, (default, fusions) in results["default"].items():
         off = results["off"][name][0]
         line = f"{name} | {'-' if fusions is None else fusions} | {gap(default, off)}"
@@ -181,4 +224,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    child(*sys.argv[1:]) if len(sys.argv) > 1 and sys.argv[1] != "--full-gp-sizes" else main()
+    if len(sys.argv) > 1 and not sys.argv[1].startswith("--"):
+        child(*sys.argv[1:])
+    else:
+        main()
