@@ -67,10 +67,16 @@ def flat(tree) -> np.ndarray:
     return np.concatenate([np.asarray(x, float).reshape(SEEDS, -1) for x in jax.tree.leaves(tree)], 1)
 
 
-def ynn_reduce_fusions(jitted, *args) -> int:
-    """How many YNN fusions of the compiled program reduce."""
-    text = jitted.lower(*args).compile().as_text()
-    return sum(1 for line in text.splitlines() if "__ynn_fusion" in line and "reduce" in line)
+def run_counting_fusions(jitted, *args):
+    """(``jitted(*args)``, how many YNN fusions of its compiled program reduce), compiled once."""
+    compiled = jitted.lower(*args).compile()
+    fusions = sum(1 for line in compiled.as_text().splitlines() if "__ynn_fusion" in line and "reduce" in line)
+    return compiled(*args), fusions
+
+
+def seed_keys() -> jax.Array:
+    """(SEEDS,) keys of the estimates and evaluations."""
+    return jax.vmap(lambda s: jax.random.fold_in(jax.random.key(s), 7))(jnp.arange(SEEDS))
 
 
 def random_data(episodes: int):
@@ -108,12 +114,13 @@ def child(mode: str, folder: str, part: str) -> None:
         pickle.dump((out, control), f)
 
 
-def off_posterior(mode: str, folder: str, episodes: int, data):
-    """The fit of mode "off" (which runs first and saves it), so that every mode runs on the same GP."""
+def off_posterior(mode: str, folder: str, episodes: int, data, fitted=None):
+    """The fit of mode "off" (which runs first and saves it, ``fitted`` if given), so that every
+    mode runs on the same GP."""
     posterior_file = os.path.join(folder, f"posterior_{episodes}.pkl")
     if mode == "off":
         with open(posterior_file, "wb") as f:
-            pickle.dump(jax.device_get(fit(data)), f)
+            pickle.dump(jax.device_get(fit(data) if fitted is None else fitted), f)
     with open(posterior_file, "rb") as f:
         return pickle.load(f)
 
@@ -122,43 +129,37 @@ def optimiser_programs(mode: str, folder: str, out: dict) -> None:
     """The jobs' policy optimisation program (``harness.episodic.policy_optimiser`` in float32,
     vmapped over the seeds) with 2 steps instead of 600 (the same scan body): theta after them
     and the 2 values, per estimator, at ``EPISODES``."""
-    keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.key(s), 7))(jnp.arange(SEEDS))
+    keys = seed_keys()
     for episodes in EPISODES:
         data, theta = random_data(episodes)
         problem = task_problem(TASK, gp.GPModel(TASK), off_posterior(mode, folder, episodes, data))
         for name in ESTIMATORS:
             run = jax.jit(jax.vmap(in_precision(policy_optimiser(name, 2, PARTICLES), jnp.float32)))
-            result = run(problem, theta, keys)
+            result, fusions = run_counting_fusions(run, problem, theta, keys)
             label = f"{episodes * TASK.horizon} rows, {name} policy optimisation, 2 steps, P = {PARTICLES}"
             values_and_theta = np.concatenate([np.asarray(result.values, float), flat(result.theta)], 1)
-            out[f"{label}, T = {TASK.horizon} (float32)"] = (values_and_theta,
-                                                           ynn_reduce_fusions(run, problem, theta, keys))
+            out[f"{label}, T = {TASK.horizon} (float32)"] = (values_and_theta, fusions)
         print(f"  {mode}: {episodes * TASK.horizon} rows done", file=sys.stderr, flush=True)
 
 
 def all_programs(mode: str, folder: str, every_program: bool, out: dict, control: dict) -> None:
     """``child``'s parts "all" (``every_program``) and "full-gp-sizes"."""
-    keys = jax.vmap(lambda s: jax.random.fold_in(jax.random.key(s), 7))(jnp.arange(SEEDS))
+    keys = seed_keys()
     dtype = jnp.float64 if mode == "f64" else jnp.float32
     for episodes in EPISODES if every_program else FULL_GP_EPISODES:
         data, theta = random_data(episodes)
         rows = f"{episodes * TASK.horizon} rows"
-        posterior_file = os.path.join(folder, f"posterior_{episodes}.pkl")
+        fitted = None
         if mode == "off" or (mode == "default" and every_program):
-            posterior = fit(data)
-            out[f"{rows}, GP fit (float64)"] = (flat(posterior), None)
-        if mode == "off":
-            with open(posterior_file, "wb") as f:
-                pickle.dump(jax.device_get(posterior), f)
-        with open(posterior_file, "rb") as f:
-            posterior = pickle.load(f)  # every mode runs the programs below on off's fit
+            fitted = fit(data)
+            out[f"{rows}, GP fit (float64)"] = (flat(fitted), None)
+        posterior = off_posterior(mode, folder, episodes, data, fitted)  # every mode runs the programs below on it
         if mode != "f64" and every_program and sparse_gp.uses_fitc(INDUCING, episodes * TASK.horizon):
             nlml = jax.jit(jax.vmap(jax.value_and_grad(sparse_gp.fitc_neg_log_marginal_likelihood)))
             start = jax.vmap(lambda d: sparse_gp.initial_inducing(d, INDUCING))(data)
-            value, grad = nlml(start, posterior.log_hyp, data)
+            (value, grad), fusions = run_counting_fusions(nlml, start, posterior.log_hyp, data)
             out[f"{rows}, FITC NLML and gradient at the initial inducing inputs (float64)"] = (
-                np.concatenate([np.asarray(value)[:, None], flat(grad)], 1),
-                ynn_reduce_fusions(nlml, start, posterior.log_hyp, data))
+                np.concatenate([np.asarray(value)[:, None], flat(grad)], 1), fusions)
             fitc = jax.vmap(sparse_gp.fitc_posterior)
             out[f"{rows}, FITC posterior at off's inducing inputs (float64)"] = (
                 flat(fitc(posterior.inputs, posterior.log_hyp, data)), None)
@@ -168,23 +169,23 @@ def all_programs(mode: str, folder: str, every_program: bool, out: dict, control
         if mode != "f64":
             problem = task_problem(TASK, gp.GPModel(TASK), posterior)
             pilco = jax.jit(jax.vmap(jax.value_and_grad(lambda pr, th: pilco_objective(pr, th)[0], argnums=1)))
-            value, grad = pilco(problem, theta)
+            (value, grad), fusions = run_counting_fusions(pilco, problem, theta)
             out[f"{rows}, PILCO value and gradient (float64)"] = (
-                np.concatenate([np.asarray(value)[:, None], flat(grad)], 1), ynn_reduce_fusions(pilco, problem, theta))
+                np.concatenate([np.asarray(value)[:, None], flat(grad)], 1), fusions)
         if mode != "f64" and every_program:
             evaluate = jax.jit(jax.vmap(lambda th, k: evaluate_policy(TASK, problem.policy, th, k, num_runs=30)))
-            out[f"{rows}, evaluation, 30 runs (float64)"] = (np.asarray(evaluate(theta, keys)),
-                                                             ynn_reduce_fusions(evaluate, theta, keys))
+            costs, fusions = run_counting_fusions(evaluate, theta, keys)
+            out[f"{rows}, evaluation, 30 runs (float64)"] = (np.asarray(costs), fusions)
         for name, horizons in ESTIMATORS.items():
             est = estimators.make(name)
             run = jax.jit(jax.vmap(lambda pr, th, k: est(pr, th, k, PARTICLES)))
             for horizon in horizons if every_program else horizons[:1]:
                 problem = task_problem(TASK, gp.GPModel(TASK), cast_floating(posterior, dtype), horizon=horizon)
                 args = (problem, cast_floating(theta, dtype), keys)
-                estimate = run(*args)
+                estimate, fusions = run_counting_fusions(run, *args)
                 out[f"{rows}, {name} gradient, P = {PARTICLES}, T = {horizon} (float32)"] = (
                     np.concatenate([np.asarray(estimate.value, float)[:, None], flat(estimate.grad)], 1),
-                    ynn_reduce_fusions(run, *args))
+                    fusions)
         print(f"  {mode}: {rows} done", file=sys.stderr, flush=True)
 
 
