@@ -77,11 +77,16 @@ TASK_FORMS = ("the task's features and cost as forms: the Task properties policy
               "model_initial_moments; a task without them runs the particle estimators only")
 
 
+POLICY_FORM = "a policy with a form (tasks.forms.PolicyForm: the RBF network or the linear policy)"
+
+
 def check_task(task) -> None:
     """Fail now, naming the Task properties to add, when PILCO cannot moment-match ``task``
     (rather than after a trial and a GP fit)."""
     if task_moment_forms(task) is None or task.gp_feature_map is None:
         raise ValueError(f"the pilco estimator needs {TASK_FORMS}; task {task.name!r} lacks them")
+    if task.default_policy().form is None:
+        raise ValueError(f"the pilco estimator needs {POLICY_FORM}; task {task.name!r}'s default_policy has none")
 
 
 def check_capabilities(problem: Problem) -> None:
@@ -90,7 +95,7 @@ def check_capabilities(problem: Problem) -> None:
     if problem.moment_forms is None:
         missing.append(TASK_FORMS)
     if problem.policy.form is None:
-        missing.append("a policy with a form (tasks.forms.PolicyForm: the RBF network or the linear policy)")
+        missing.append(POLICY_FORM)
     if not hasattr(problem.model, "next_state_moments"):
         missing.append(f"a model with next_state_moments (the GP; not {type(problem.model).__name__})")
     if problem.model_var_scale not in (0.0, 1.0):

@@ -53,7 +53,7 @@ class Args(scenario_lib.ExperimentArgs):
     """Learned-model against true-dynamics gradients: variance, cosine and relative error."""
 
     models: str = "gp,jax"
-    """Comma-separated models to compare (gp, jax, mjx)."""
+    """Comma-separated models to compare (gp, jax, mjx, or your own: harness.scenario.MODELS)."""
     estimators: str = "rp,lr,biw_lr,tp"
     """Comma-separated estimators."""
     particles: str = "10,30,100,300"

@@ -51,7 +51,7 @@ class Args(scenario_lib.ExperimentArgs):
     """The curse-of-chaos value landscape along a random direction in policy space."""
 
     model: str = "gp"
-    """Dynamics: gp (the scenario's GP), jax or mjx."""
+    """Dynamics: gp (the scenario's GP), jax or mjx, or one of your own (harness.scenario.MODELS)."""
     estimators: str = "rp_fs,lr,tp"
     """Comma-separated estimators whose projected gradients are plotted."""
     particles: int = 1000
@@ -163,6 +163,15 @@ def value_slice(args: Args, where: scenario_lib.Setting, delta: float, key: jax.
     return {"axis_i": np.asarray(axis_i), "axis_j": np.asarray(axis_j), "values": np.asarray(values)}
 
 
+def check_aux(name: str, aux: dict) -> None:
+    """Refuse an estimator whose ``Estimate.aux`` lacks what the landscape reads."""
+    missing = [entry for entry in ("particle_grads", "nan_count") if entry not in aux]
+    if missing:
+        raise ValueError(f"estimator {name!r} gives no aux{missing}: the landscape projects each particle's "
+                         "gradient (particle_grads) and counts non-finite terms (nan_count); "
+                         "estimators.base.particle_estimate adds both")
+
+
 def run(args: Args) -> tuple[pd.DataFrame, dict, scenario_lib.Setting]:
     """Measure every missing delta (appending to the CSV), then the slices; returns this run's
     rows, the slices {delta: value_slice(...)} and the Setting."""
@@ -175,9 +184,7 @@ def run(args: Args) -> tuple[pd.DataFrame, dict, scenario_lib.Setting]:
     for name in str_list(args.estimators):  # traced for shapes only: nothing computed
         estimate = jax.eval_shape(lambda pr, th, k: jitted[name](pr, th, k, args.particles), where.problem,
                                   where.theta0, key)
-        if "particle_grads" not in estimate.aux:
-            raise ValueError(f"estimator {name!r} gives no aux['particle_grads'], each particle's gradient, which the "
-                             "landscape projects (estimators.base.particle_estimate adds it)")
+        check_aux(name, estimate.aux)
     for index, delta in enumerate(args.deltas):
         row_key = dict(task=args.task, model=args.model, particles=args.particles, delta_theta=float(delta),
                        seed=args.seed, scenario=where.content, fd_step=args.fd_step, estimators=args.estimators)

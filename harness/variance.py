@@ -38,8 +38,8 @@ class Args(scenario_lib.ExperimentArgs):
     """Gradient variance of each estimator against the particle count."""
 
     model: str = "gp"
-    """Dynamics the estimators roll out: gp (the scenario's GP), jax or mjx (the true dynamics);
-    harness.scenario.MODELS."""
+    """Dynamics the estimators roll out: gp (the scenario's GP), jax or mjx (the true dynamics),
+    or one of your own (harness.scenario.MODELS)."""
     estimators: str = "rp,lr,biw_lr,biw_lr_pairwise,biw_lr_no_baseline,tp"
     """Comma-separated estimators (estimators.REGISTRY names, e.g. biw_lr_pairwise)."""
     particles: str = "10,30,100,300"

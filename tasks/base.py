@@ -88,7 +88,12 @@ class Task:
 
     Subclasses set the class attributes below and implement ``derivative``, ``cost``,
     ``policy_features``, ``gp_features``, ``default_policy`` and the initial-state and noise
-    properties; they override ``to_model_state``/``from_model_state`` when ``s != z``.
+    properties; they override ``to_model_state``/``from_model_state`` when ``s != z``, and
+    ``to_mujoco``/``from_mujoco`` when they set ``mjcf``.
+
+    A task must be hashable (its bound methods are static metadata of ``estimators.base.Problem``
+    under jit), so its fields are immutable values (floats, strings, tuples); each option's type
+    must parse from a string (``tasks.parse_options``, the CLI's ``--task-options``).
     """
 
     name: ClassVar[str]
@@ -182,11 +187,12 @@ class Task:
         raise NotImplementedError
 
     def policy_features(self, s: jax.Array) -> jax.Array:
-        """What the policy sees of a modelled state."""
+        """What the policy sees of a modelled state: s (model_state_dim,) -> f (F,)."""
         raise NotImplementedError
 
     def gp_features(self, s: jax.Array) -> jax.Array:
-        """What the GP sees of a modelled state (the control is appended by ``gp_inputs``)."""
+        """What the GP sees of a modelled state, s (model_state_dim,) -> (G,); the control is
+        appended by ``gp_inputs``."""
         raise NotImplementedError
 
     @property
@@ -273,8 +279,21 @@ class Task:
         return z + self.obs_noise_std.astype(z.dtype) * eps
 
     def default_policy(self) -> Policy:
-        """The preset's policy (an ``init``/``apply`` pair)."""
+        """The preset's policy (``tasks.policies.Policy``: ``init``, ``network``, ``prepare`` and
+        the ``form`` PILCO moment-matches, None for a policy only the particle methods run)."""
         raise NotImplementedError
+
+    def to_mujoco(self, z: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """ODE state z (state_dim,) -> MuJoCo ``(qpos (nq,), qvel (nv,))`` of ``mjcf``.
+
+        Needed only with ``mjcf``. ``tasks.mjx_dynamics`` writes the control u (U,) into
+        ``ctrl`` as it is, so the MJCF's actuators follow ``control_names``' order, and ``dt``
+        must be a whole number of the MJCF's timesteps."""
+        raise NotImplementedError(f"task {self.name!r} defines no to_mujoco (needed with an mjcf)")
+
+    def from_mujoco(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+        """MuJoCo ``(qpos (nq,), qvel (nv,))`` -> ODE state z (state_dim,); inverse of ``to_mujoco``."""
+        raise NotImplementedError(f"task {self.name!r} defines no from_mujoco (needed with an mjcf)")
 
     @property
     def control_limits(self) -> jax.Array:

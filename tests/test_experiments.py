@@ -359,6 +359,16 @@ def test_an_estimator_without_a_nan_count_is_refused_with_what_to_add():
         repeated_estimates(Silent(), problem, theta, 4, 2, jax.random.key(1))
 
 
+def test_the_landscape_refuses_an_estimate_without_what_it_reads():
+    from harness.landscape import check_aux
+
+    check_aux("tp", {"particle_grads": 0, "nan_count": 0})
+    with pytest.raises(ValueError, match=r"'my_rp' gives no aux\['nan_count'\]"):
+        check_aux("my_rp", {"particle_grads": 0})
+    with pytest.raises(ValueError, match=r"no aux\['particle_grads', 'nan_count'\]"):
+        check_aux("my_rp", {})
+
+
 def test_a_reference_with_a_non_finite_estimate_is_refused(tmp_path):
     import jax
 

@@ -49,6 +49,22 @@ def test_pilco_needs_a_moment_model():
         pilco_optimiser(2)(problem, theta, None)
 
 
+def test_pilco_checks_the_tasks_policy_before_it_computes_anything():
+    """A task with the forms but a policy PILCO cannot moment-match fails in ``check_task``
+    (called before the learning loop's first trial), naming what to add."""
+    from estimators.pilco import check_task
+
+    cartpole = type(tasks.make("cartpole"))
+
+    class FormlessPolicyCartpole(cartpole):
+        def default_policy(self):
+            return super().default_policy()._replace(form=None)
+
+    check_task(tasks.make("cartpole"))
+    with pytest.raises(ValueError, match="a policy with a form"):
+        check_task(FormlessPolicyCartpole(**dataclasses.asdict(tasks.make("cartpole"))))
+
+
 @pytest.fixture(scope="module")
 def cartpole_problem():
     """A GP trained on 150 random cart-pole transitions near the start state, PILCO's
