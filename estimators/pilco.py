@@ -81,12 +81,12 @@ POLICY_FORM = "a policy with a form (tasks.forms.PolicyForm: the RBF network or 
 
 
 def check_task(task) -> None:
-    """Fail now, naming the Task properties to add, when PILCO cannot moment-match ``task``
-    (rather than after a trial and a GP fit)."""
+    """Fail now, naming what to add (the Task's forms, its default policy's form), when PILCO
+    cannot moment-match ``task`` (rather than after a trial and a GP fit)."""
     if task_moment_forms(task) is None or task.gp_feature_map is None:
         raise ValueError(f"the pilco estimator needs {TASK_FORMS}; task {task.name!r} lacks them")
     if task.default_policy().form is None:
-        raise ValueError(f"the pilco estimator needs {POLICY_FORM}; task {task.name!r}'s default_policy has none")
+        raise ValueError(f"the pilco estimator needs {POLICY_FORM}; the default policy of task {task.name!r} has none")
 
 
 def check_capabilities(problem: Problem) -> None:

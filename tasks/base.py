@@ -92,8 +92,8 @@ class Task:
     ``to_mujoco``/``from_mujoco`` when they set ``mjcf``.
 
     A task must be hashable (its bound methods are static metadata of ``estimators.base.Problem``
-    under jit), so its fields are immutable values (floats, strings, tuples); each option's type
-    must parse from a string (``tasks.parse_options``, the CLI's ``--task-options``).
+    under jit), so its fields are immutable scalars (float, int, str, bool), each of a type that
+    parses from a string (``tasks.parse_options``, the CLI's ``--task-options``).
     """
 
     name: ClassVar[str]

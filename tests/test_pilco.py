@@ -49,7 +49,7 @@ def test_pilco_needs_a_moment_model():
         pilco_optimiser(2)(problem, theta, None)
 
 
-def test_pilco_checks_the_tasks_policy_before_it_computes_anything():
+def test_check_task_refuses_a_policy_without_a_form():
     """A task with the forms but a policy PILCO cannot moment-match fails in ``check_task``
     (called before the learning loop's first trial), naming what to add."""
     from estimators.pilco import check_task

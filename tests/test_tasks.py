@@ -45,13 +45,11 @@ def test_forms_are_the_task_functions(name):
     every registered task that declares forms (a new task's included), to 1e-12. (The
     cart-pole defines its functions through its forms, so for it only the cost's moment formula
     at zero covariance is checked against the form; the unicycle's functions are written apart.)"""
-    from estimators.pilco import check_task
+    from estimators.base import task_moment_forms
     from models.form_moments import expected_cost
 
     task = tasks.make(name)
-    try:
-        check_task(task)
-    except ValueError:
+    if task_moment_forms(task) is None or task.gp_feature_map is None:
         pytest.skip(f"{name} declares no forms (particle estimators only)")
     points = jax.random.normal(jax.random.key(0), (8, task.model_state_dim))
     zero = jnp.zeros((task.model_state_dim, task.model_state_dim))
