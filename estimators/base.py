@@ -162,8 +162,12 @@ def rollout(problem: Problem, nets, s0: jax.Array, eps: jax.Array, *, detach_sam
     ``detach_samples`` holds each sample fixed (no gradient through the sampling: the
     likelihood-ratio estimators). ``resample(s_tilde (P, S), xi (P, S)) -> (P, S)`` replaces
     the sampled particles after each step (Gaussian resampling), with noise ``resample_noise``
-    (T, P, S).
+    (T, P, S), which must be given with ``resample`` (drawn apart from eps: reusing eps was
+    GR's bug until 2026-12-06).
     """
+    if (resample is None) != (resample_noise is None):
+        raise ValueError("rollout: give resample and resample_noise together (the resampling noise must be "
+                         "drawn independently of eps, e.g. estimators.reparameterisation.draw_resampling_noise)")
 
     def one_step(s, inputs):
         eps_t, xi_t = inputs
@@ -175,7 +179,7 @@ def rollout(problem: Problem, nets, s0: jax.Array, eps: jax.Array, *, detach_sam
             s_next = resample(s_next, xi_t)
         return s_next, (s_next, zeta, jax.vmap(problem.cost)(s_next))
 
-    xi = eps if resample_noise is None else resample_noise
+    xi = eps if resample_noise is None else resample_noise  # without resample, a placeholder the scan ignores
     _, (states, zetas, costs) = jax.lax.scan(one_step, s0, (eps, xi))
     return Trajectory(jnp.concatenate([s0[None], states]), zetas, costs)
 

@@ -216,6 +216,21 @@ def test_gr_resampling_noise_is_independent_of_the_sampling_noise():
     assert abs(r) < 4 / np.sqrt(eps.size)
 
 
+def test_rollout_resamples_with_the_noise_it_is_given_and_not_without_it():
+    """The resampler receives resample_noise's rows, step by step (not eps's: the bug above);
+    a resampling rollout without resample_noise refuses to run rather than fall back on eps."""
+    from estimators.base import draw_noise, per_particle, prepared, rollout
+
+    s0, eps = draw_noise(PROBLEM, jax.random.key(0), 7, jnp.float64)
+    xi = jax.random.normal(jax.random.key(1), eps.shape)
+    nets = per_particle(prepared(PROBLEM, THETA)[0], 7)
+    take_the_noise = lambda s_tilde, xi_t: xi_t  # noqa: E731
+    traj = rollout(PROBLEM, nets, s0, eps, resample=take_the_noise, resample_noise=xi)
+    np.testing.assert_array_equal(traj.states[1:], xi)
+    with pytest.raises(ValueError, match="resample_noise"):
+        rollout(PROBLEM, nets, s0, eps, resample=take_the_noise)
+
+
 def test_rp_fs_is_the_gradient_of_its_fixed_noise_objective():
     est = estimators.make("rp_fs")
     e = est(PROBLEM, THETA, jax.random.key(3), 30)
