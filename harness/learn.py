@@ -22,8 +22,9 @@ saved under ``{out}/.cache/learn/`` (or ``--checkpoints DIR``), so a rerun of an
 batch continues after its last finished trial (with the same repeats, settings and precision). Progress (batch, trial,
 optimiser step) goes to stderr. Each learned trial's row counts the optimiser steps whose
 estimate was not finite (``nonfinite_steps``: such a step moves no parameter whose component
-is not finite); the report flags every trial where it is above zero. The report
-(``harness.learn_report``) regenerates every table and figure from the CSV alone.
+is not finite); the report flags every trial where it is above zero. The report pools every
+method of the CSV run at the same settings, not only this run's (``harness.learn_report``
+regenerates every table and figure from the CSV alone).
 """
 
 from __future__ import annotations
@@ -270,7 +271,9 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
 
 def run(args: Args):
     """Run every missing experiment, ``batch`` repeats at a time, appending their trials as
-    each batch ends; returns this run's rows."""
+    each batch ends; returns the rows the report pools: every method's rows in the CSV at this
+    run's task options, settings and seeds, whichever process ran them (so that two processes
+    splitting the methods of one CSV write the same report)."""
     table = ResultTable(args.stem + ".csv", KEY_COLUMNS)
     task = args.make_task()
     cost = getattr(task, "cost_type", "default")
@@ -292,9 +295,8 @@ def run(args: Args):
         os.remove(checkpoint_path(args, method, missing))  # its rows are in the table now
         jax.clear_caches()  # each trial compiled its own programs (README: memory mappings)
     rows = table.read()
-    current = np.array([s == args.settings_name(m) for s, m in zip(rows.settings, rows.method)], bool)
-    return rows[current & (rows.task_options == tasks.describe(task)) & rows.method.isin(str_list(args.methods))
-                & (rows.repeat < args.repeats) & (rows.seed == rows.repeat + args.seed)]
+    current = np.array([m in METHODS and s == args.settings_name(m) for s, m in zip(rows.settings, rows.method)], bool)
+    return rows[current & (rows.task_options == tasks.describe(task)) & (rows.seed == rows.repeat + args.seed)]
 
 
 def main(argv=None) -> None:

@@ -43,6 +43,11 @@ def test_learning_runs_end_to_end_and_an_interrupted_run_resumes(tmp_path, monke
     report = (tmp_path / "learn_cartpole_angle_k1_quick.md").read_text()
     assert "Success threshold" in report and "paper" in report
     assert (tmp_path / "learn_cartpole_angle_k1_quick.png").stat().st_size > 1000
+    learn.main(TINY + ["--repeats", "1", "--methods", "tp+sigma_n", "--out", str(tmp_path)])  # nothing missing
+    assert calls == [("tp+sigma_n", [0])]
+    rerun_report = (tmp_path / "learn_cartpole_angle_k1_quick.md").read_text()
+    assert "| pilco " in rerun_report  # the report pools the CSV's other methods, as `learn_report` does
+    assert rerun_report.split("\n")[4:] == report.split("\n")[4:]  # all but the command line
 
 
 def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_path, monkeypatch, capsys):
