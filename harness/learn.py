@@ -82,6 +82,11 @@ policy optimisation (``estimators.base.FixedNoise``) and draw it afresh for the 
 these fix it for the whole learning run, every trial optimising on the same particles
 (``learning_run(optimisation_key_per_run=True)``)."""
 
+READINGS = ("pilco-sigma_n", *NOISE_FIXED_PER_RUN)
+"""Methods that read one of the paper's conventions otherwise (README, "Conventions"). They run into their own CSV
+(``--out reports/readings``) and take no part in the success threshold of a report that pools them beside the table
+(``harness.learn_report TABLE.csv READINGS.csv --out STEM``), so that they are judged at the table's cut."""
+
 PRESETS = {
     # learned trials (0: the task preset's), optimiser steps, particles, evaluation runs,
     # PILCO's L-BFGS steps, GP training steps

@@ -189,15 +189,22 @@ THRESHOLD_KEYS = ["task", "cost", "scale"]
 
 def otsu_thresholds(final: pd.DataFrame) -> dict:
     """Otsu's threshold of the pooled final evaluation costs per (task, cost, scale), every k and method
-    but those of ``INVALID_METHODS`` (kept for the record, they must not move the valid rates' cut),
-    unless a group holds nothing else (a file of superseded runs is cut on its own costs)."""
-    return {key: otsu_threshold(pooled_costs(group)) for key, group in final.groupby(THRESHOLD_KEYS)}
+    but those of ``INVALID_METHODS`` (kept for the record, they must not move the valid rates' cut) and
+    ``harness.learn.READINGS`` (judged at the table's cut), unless a group holds nothing else (a file of
+    readings, or of superseded runs, is cut on its own costs)."""
+    return {key: otsu_threshold(pooled_rows(group).eval_mean.to_numpy())
+            for key, group in final.groupby(THRESHOLD_KEYS)}
 
 
-def pooled_costs(group: pd.DataFrame) -> np.ndarray:
-    """The final costs of one threshold group that make its cut (``otsu_thresholds``)."""
-    valid = group[~group.method.isin(list(INVALID_METHODS))]
-    return (valid if len(valid) else group).eval_mean.to_numpy()
+def pooled_rows(group: pd.DataFrame) -> pd.DataFrame:
+    """The final rows of one threshold group whose costs make its cut (``otsu_thresholds``)."""
+    from harness.learn import READINGS
+
+    for left_out in (list(INVALID_METHODS) + list(READINGS), list(INVALID_METHODS)):
+        kept = group[~group.method.isin(left_out)]
+        if len(kept):
+            return kept
+    return group
 
 
 def threshold_name(key: tuple) -> str:
@@ -523,12 +530,17 @@ def threshold_lines(final: pd.DataFrame, thresholds: dict) -> list[str]:
     to find) and the sorted pooled final costs."""
     lines = []
     for key, group in final.groupby(THRESHOLD_KEYS):
-        threshold, pooled = thresholds[key], pooled_costs(group)
+        threshold, kept = thresholds[key], pooled_rows(group)
+        pooled = kept.eval_mean.to_numpy()
         values = np.sort(pooled[np.isfinite(pooled)])
         diverged = (f"; {len(pooled) - len(values)} non-finite final costs, failures at any cut, are not pooled"
                     if len(values) < len(pooled) else "")
-        if invalid := len(group) - len(pooled):
+        left_out = group.drop(kept.index)
+        if invalid := left_out.method.isin(list(INVALID_METHODS)).sum():
             diverged += f"; the {invalid} final costs of INVALID runs are not pooled"
+        if readings := sorted(set(left_out.method) - set(INVALID_METHODS)):
+            diverged += (f"; the {len(left_out) - invalid} final costs of other readings "
+                         f"({', '.join(readings)}) are not pooled: they are judged at this cut")
         low, high = values[values < threshold], values[values >= threshold]
         separation = np.nan  # one group is empty where every run is on the same side of the cut
         if len(low) and len(high):
@@ -546,7 +558,7 @@ def threshold_lines(final: pd.DataFrame, thresholds: dict) -> list[str]:
 
 def invalid_lines(final: pd.DataFrame) -> list[str]:
     """A line per method of ``INVALID_METHODS`` in ``final``: why it is invalid, and whether its
-    costs took part in the threshold (only in a file of invalid runs alone: ``pooled_costs``)."""
+    costs took part in the threshold (only in a file of invalid runs alone: ``pooled_rows``)."""
     alone = final.method.isin(list(INVALID_METHODS)).all()
     pool = "the threshold is cut on these invalid costs alone" if alone else "its costs not in the threshold's pool"
     return [f"- `{m}`: INVALID ({pool}), {why}." for m, why in INVALID_METHODS.items() if m in set(final.method)]

@@ -165,6 +165,23 @@ def test_invalid_runs_take_no_part_in_the_threshold():
     assert "cut on these invalid costs alone" in learn_report.invalid_lines(alone)[0]
 
 
+def test_other_readings_are_judged_at_the_tables_cut():
+    """A reading of a convention (``harness.learn.READINGS``) reported beside the table takes no part in its cut:
+    TP's costs alone cut at 10.5, where pooling the reading's costs would cut elsewhere. Alone, a file of readings
+    is cut on its own costs."""
+    tp = {("tp", 1.0): [5.0] * 5 + [16.0] * 5}
+    reading = {("rp_fs_run", 1.0): [12.0] * 3 + [30.0] * 7}
+    assert learn_report.otsu_threshold(np.array(tp["tp", 1.0] + reading["rp_fs_run", 1.0])) != 10.5
+    final = learn_report.final_evaluations(rows_of({**tp, **reading}))
+    assert learn_report.otsu_thresholds(final) == {("cartpole", "angle", ""): 10.5}
+    success = learn_report.success_rows(rows_of({**tp, **reading})).set_index("method")
+    assert success.loc["tp", "wins"] == 5 and success.loc["rp_fs_run", "wins"] == 0  # 12 fails at the table's cut
+    line = learn_report.threshold_lines(final, {("cartpole", "angle", ""): 10.5})[0]
+    assert "the 10 final costs of other readings (rp_fs_run) are not pooled" in line and "cut of the 10 pooled" in line
+    alone = learn_report.final_evaluations(rows_of(reading))
+    assert learn_report.otsu_thresholds(alone) == {("cartpole", "angle", ""): 21.0}
+
+
 def test_the_report_carries_the_comparison_with_the_paper(tmp_path):
     path = tmp_path / "learn_cartpole_angle_k1_quick.csv"
     rows_of({**wins("tp", 9), **wins("pilco", 2), **wins("rp_fs_seed0", 3)}).to_csv(path, index=False)
