@@ -189,14 +189,23 @@ def per_particle(theta, num_particles: int):
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (num_particles,) + jnp.shape(x)), theta)
 
 
+def variance_of_mean(g: jax.Array) -> jax.Array:
+    """``var_i(g_i) / P`` (ddof 1) of per-particle values g (P, ...), accumulated in JAX's widest
+    float (float64 under ``jax_enable_x64``) and returned in it: a float32 gradient above about
+    1.8e19 squares past float32's range, so its variance would overflow to inf while the gradient
+    itself is finite. Without x64 it stays in g's dtype (and can overflow)."""
+    wide = g.astype(jnp.promote_types(g.dtype, jnp.result_type(float)))
+    return wide.var(axis=0, ddof=1) / g.shape[0]
+
+
 def particle_estimate(value: jax.Array, per_particle_grads, extra_nans=0, **aux) -> Estimate:
     """The Estimate from per-particle gradient estimates g_i (leaves (P, ...)): the mean
-    gradient, the variance of that mean ``var_i(g_i) / P`` (ddof 1), and in aux the count of
-    non-finite entries (plus ``extra_nans``) and the g_i themselves as ``particle_grads`` (for
-    statistics of projections, e.g. a directional derivative's confidence interval)."""
-    num = jax.tree.leaves(per_particle_grads)[0].shape[0]
+    gradient, the variance of that mean ``var_i(g_i) / P`` (``variance_of_mean``: float64 under
+    x64, whatever g's dtype), and in aux the count of non-finite entries (plus ``extra_nans``)
+    and the g_i themselves as ``particle_grads`` (for statistics of projections, e.g. a
+    directional derivative's confidence interval)."""
     grad = jax.tree.map(lambda g: g.mean(axis=0), per_particle_grads)
-    grad_var = jax.tree.map(lambda g: g.var(axis=0, ddof=1) / num, per_particle_grads)
+    grad_var = jax.tree.map(variance_of_mean, per_particle_grads)
     nan_count = sum(jnp.sum(~jnp.isfinite(g)) for g in jax.tree.leaves(per_particle_grads)) + extra_nans
     return Estimate(value, grad, grad_var, {**aux, "nan_count": nan_count, "particle_grads": per_particle_grads})
 

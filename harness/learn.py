@@ -124,6 +124,8 @@ class Args:
     """Comma-separated methods (learn.METHODS)."""
     repeats: int = 10
     """Learning runs per method (repeat r uses seed + r)."""
+    first_repeat: int = 0
+    """Run repeats first_repeat..repeats-1 only (harness.sweep gives each unit its batch)."""
     preset: str = "quick"
     """Settings preset: quick, quick_p50 or paper (learn.PRESETS)."""
     seed: int = 0
@@ -166,6 +168,8 @@ class Args:
             check_task(task)
         if self.repeats < 1 or self.batch < 1:
             raise ValueError("repeats and batch must be >= 1")
+        if not 0 <= self.first_repeat < self.repeats:
+            raise ValueError(f"first_repeat must be in 0..repeats-1, got {self.first_repeat}")
         if self.gp_inducing < 0:
             raise ValueError(f"gp_inducing must be >= 0 (0: the full GP; PILCO's cart-pole: 300); got "
                              f"{self.gp_inducing}")
@@ -274,34 +278,41 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     return rows
 
 
+def row_key(args: Args, task, method: str, repeat: int) -> dict:
+    """The key columns (``KEY_COLUMNS``) of ``method``'s repeat ``repeat`` under ``args``."""
+    return dict(task=args.task, cost=getattr(task, "cost_type", "default"), noise_k=args.noise_k,
+                task_options=tasks.describe(task), method=method, repeat=repeat, seed=args.seed + repeat,
+                settings=args.settings_name(method))
+
+
+def current_rows(args: Args, table: ResultTable):
+    """Every method's rows in ``table`` at this run's task options, settings and seeds, whichever
+    process ran them (so that two processes splitting the methods of one CSV write the same report)."""
+    rows = table.read()
+    current = np.array([m in METHODS and s == args.settings_name(m) for s, m in zip(rows.settings, rows.method)], bool)
+    return rows[current & (rows.task_options == tasks.describe(args.make_task()))
+                & (rows.seed == rows.repeat + args.seed)]
+
+
 def run(args: Args):
-    """Run every missing experiment, ``batch`` repeats at a time, appending their trials as
-    each batch ends; returns the rows the report pools: every method's rows in the CSV at this
-    run's task options, settings and seeds, whichever process ran them (so that two processes
-    splitting the methods of one CSV write the same report)."""
+    """Run every missing experiment, ``batch`` repeats at a time from ``first_repeat``, appending
+    their trials as each batch ends; returns the rows the report pools (``current_rows``)."""
     table = ResultTable(args.stem + ".csv", KEY_COLUMNS)
     task = args.make_task()
-    cost = getattr(task, "cost_type", "default")
-
-    def row_key(method, repeat):
-        return dict(task=args.task, cost=cost, noise_k=args.noise_k, task_options=tasks.describe(task), method=method,
-                    repeat=repeat, seed=args.seed + repeat, settings=args.settings_name(method))
-
     batches = [(m, list(range(first, min(first + args.batch, args.repeats))))
-               for m in str_list(args.methods) for first in range(0, args.repeats, args.batch)]
+               for m in str_list(args.methods) for first in range(args.first_repeat, args.repeats, args.batch)]
     for index, (method, chunk) in enumerate(batches):
-        missing = [r for r in chunk if not table.has(row_key(method, r))]
+        missing = [r for r in chunk if not table.has(row_key(args, task, method, r))]
         if not missing:
             continue
         print(f"[batch {index + 1}/{len(batches)}] {method}, repeats {missing}", file=sys.stderr, flush=True)
         # one append, so that a stop is unlikely to leave some repeats' rows, which a rerun would take as done
         # (it is not atomic: learn_report leaves out an experiment with fewer trials than its settings)
-        table.extend([{**row_key(method, row["repeat"]), **row} for row in run_experiments(args, method, missing)])
+        table.extend([{**row_key(args, task, method, row["repeat"]), **row}
+                      for row in run_experiments(args, method, missing)])
         os.remove(checkpoint_path(args, method, missing))  # its rows are in the table now
         jax.clear_caches()  # each trial compiled its own programs (README: memory mappings)
-    rows = table.read()
-    current = np.array([m in METHODS and s == args.settings_name(m) for s, m in zip(rows.settings, rows.method)], bool)
-    return rows[current & (rows.task_options == tasks.describe(task)) & (rows.seed == rows.repeat + args.seed)]
+    return current_rows(args, table)
 
 
 def main(argv=None) -> None:

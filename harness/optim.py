@@ -33,12 +33,16 @@ class PippsSGDState(NamedTuple):
 
 
 def normalised_gradient(g: jax.Array, var: jax.Array) -> jax.Array:
-    """``g / sqrt(g^2 + var)`` elementwise; 0 where both are 0 (no information) and where g or
-    var is not finite (an overflowed or NaN estimate moves that parameter nothing; inf / inf
-    would otherwise put NaN in the momentum and in theta for good)."""
-    denom = jnp.sqrt(g**2 + var)
-    usable = (denom > 0) & jnp.isfinite(g) & jnp.isfinite(var)
-    return jnp.where(usable, g / jnp.where(usable, denom, 1.0), 0.0)
+    """``g / sqrt(g^2 + var)`` elementwise, computed in the wider of the two dtypes (a float32
+    gradient's variance comes in float64, ``estimators.base.variance_of_mean``) and returned in
+    g's; 0 where both are 0 (no information) and where g or var is not finite (an overflowed or
+    NaN estimate moves that parameter nothing; inf / inf would otherwise put NaN in the momentum
+    and in theta for good)."""
+    wide = jnp.promote_types(g.dtype, jnp.asarray(var).dtype)
+    g_wide, var = g.astype(wide), jnp.asarray(var, wide)
+    denom = jnp.sqrt(g_wide**2 + var)
+    usable = (denom > 0) & jnp.isfinite(g_wide) & jnp.isfinite(var)
+    return jnp.where(usable, g_wide / jnp.where(usable, denom, 1.0), 0.0).astype(g.dtype)
 
 
 def pipps_sgd(learning_rate: float = LEARNING_RATE, momentum: float = MOMENTUM) -> optax.GradientTransformationExtraArgs:

@@ -12,9 +12,11 @@ seeds or particles, and ``jacfwd`` (a vmap of jvps: the JVP of a Cholesky is a t
 per tangent). Hence two kinds of routine here:
 
 - ``cholesky``, ``solve_lower``, ``solve_lower_t`` (LAPACK, for large matrices such as a GP's
-  N x N kernel matrix) are ``custom_vmap``ped: a batched matrix is handled by ``lax.map`` (a loop
-  of unbatched calls); a shared matrix with a batch of right-hand sides becomes ONE call with
-  the batch folded into the columns. ``custom_vjp`` gives them reverse-mode derivatives (grad,
+  N x N kernel matrix) are ``custom_vmap``ped: on the CPU a batched matrix is handled by
+  ``lax.map`` (a loop of unbatched calls); a shared matrix with a batch of right-hand sides
+  becomes ONE call with the batch folded into the columns. On another backend (a GPU: cuSOLVER
+  and cuBLAS have no such deadlock, and a loop of small calls wastes the device) a batched
+  matrix goes to the batched solver itself (``native_batching``). ``custom_vjp`` gives them reverse-mode derivatives (grad,
   vjp); forward mode (jvp, jacfwd) is not available through them.
 - ``solve_det`` (Gauss-Jordan elimination in elementwise ops, no LAPACK call) for small systems:
   the unicycle's 5 x 5 mass matrix, moment matching's D x D matrices, the RBF policy's B x B
@@ -30,7 +32,13 @@ import jax.numpy as jnp
 UNROLL_MAX = 8  # solve_det unrolls its elimination loop up to this size (straight-line code)
 
 
-# ----- LAPACK, never batched ---------------------------------------------------------------------
+# ----- LAPACK, never batched on the CPU -----------------------------------------------------------
+def native_batching() -> bool:
+    """Whether a batch of matrices goes to the backend's batched solver (True off the CPU) rather
+    than a ``lax.map`` of unbatched calls (the CPU's workaround); read while tracing."""
+    return jax.default_backend() != "cpu"
+
+
 @jax.custom_vjp
 @jax.custom_batching.custom_vmap
 def cholesky(a: jax.Array) -> jax.Array:
@@ -41,7 +49,7 @@ def cholesky(a: jax.Array) -> jax.Array:
 
 @cholesky.def_vmap
 def _cholesky_vmap(axis_size, in_batched, a):
-    return jax.lax.map(cholesky, a), True
+    return (jnp.linalg.cholesky(a) if native_batching() else jax.lax.map(cholesky, a)), True
 
 
 def _make_solve(transpose: bool):
@@ -57,6 +65,8 @@ def _make_solve(transpose: bool):
         chol_batched, b_batched = in_batched
         if chol_batched:
             b = b if b_batched else jnp.broadcast_to(b, (axis_size,) + b.shape)
+            if native_batching():
+                return jax.scipy.linalg.solve_triangular(chol, b, lower=True, trans=1 if transpose else 0), True
             return jax.lax.map(lambda args: solve(*args), (chol, b)), True
         cols = jnp.moveaxis(b, 0, -1).reshape(b.shape[1], -1)  # (N, B*M): one call
         x = solve(chol, cols).reshape(b.shape[1:] + (axis_size,))

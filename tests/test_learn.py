@@ -214,15 +214,6 @@ def test_success_statistics():
     assert learn_report.wilson_interval(0, 10)[0] == pytest.approx(0.0, abs=1e-12)
 
 
-def test_sweep_rejects_bad_cells_and_engines():
-    from harness import sweep
-
-    with pytest.raises(ValueError, match="cells must be"):
-        sweep.main(["--cells", "42"])
-    with pytest.raises(ValueError, match="valid engines"):
-        sweep.main(["--engine", "dask"])
-
-
 def test_a_batched_learning_run_is_each_seed_run_alone():
     """learning_run(batched=True, trim_model=True) over two seeds is the same computation as
     each seed alone on the whole buffer.
@@ -257,46 +248,3 @@ def test_a_batched_learning_run_is_each_seed_run_alone():
         np.testing.assert_allclose(data_batch.targets[i], data.targets, rtol=0, atol=1e-6)
         for batched_leaf, leaf in zip(jax.tree.leaves(theta_batch), jax.tree.leaves(theta)):
             np.testing.assert_allclose(batched_leaf[i], leaf, rtol=1e-6, atol=1e-9)
-
-
-@pytest.mark.slow
-def test_the_local_engine_writes_the_rows_of_each_cell_run_alone(tmp_path):
-    """The local process pool (two spawned workers) runs each cell as ``harness.learn`` does:
-    a two-cell sweep writes the rows of the same cells run here one after the other (all but
-    the timing column; to round-off: the same computation in other processes). Slow: the
-    workers compile everything anew."""
-    from harness import sweep
-
-    argv = ["--cells", "0,1", "--repeats", "1", "--methods", "tp", "--learn-args", " ".join(TINY[2:])]
-    sweep.main(argv + ["--engine", "local", "--workers", "2", "--out", str(tmp_path / "pool")])
-    alone = sweep.parse(sweep.Args, argv + ["--out", str(tmp_path / "alone")])
-    for cell in alone.chosen_cells():
-        sweep.run_cell(alone.learn_argv(cell))
-    for name in ("learn_cartpole_angle_k0.01_quick.csv", "learn_cartpole_angle_k1_quick.csv"):
-        pool = pd.read_csv(tmp_path / "pool" / name).drop(columns="seconds")
-        assert len(pool) == 2  # 1 random + 1 learned trial
-        pd.testing.assert_frame_equal(pool, pd.read_csv(tmp_path / "alone" / name).drop(columns="seconds"),
-                                      check_exact=False, rtol=1e-9)
-
-
-@pytest.mark.slow
-def test_the_ray_engine_writes_the_local_engines_rows(tmp_path):
-    """A two-cell sweep (cart-pole, angle cost, k = 0.01 and 1) on a local Ray instance writes
-    the rows that the local process pool writes for the same cells and seeds (all but the
-    timing column; equal to round-off: the same computation in other processes). Slow (both
-    engines start processes that compile everything anew)."""
-    ray = pytest.importorskip("ray", reason='the ray extra: pip install -e ".[ray]"')
-    from harness import sweep
-
-    argv = ["--cells", "0,1", "--repeats", "1", "--methods", "tp", "--learn-args", " ".join(TINY[2:])]
-    sweep.main(argv + ["--engine", "local", "--workers", "2", "--out", str(tmp_path / "local")])
-    ray.init(num_cpus=2, include_dashboard=False)
-    try:
-        sweep.main(argv + ["--engine", "ray", "--out", str(tmp_path / "ray")])
-    finally:
-        ray.shutdown()
-    for name in ("learn_cartpole_angle_k0.01_quick.csv", "learn_cartpole_angle_k1_quick.csv"):
-        local = pd.read_csv(tmp_path / "local" / name).drop(columns="seconds")
-        on_ray = pd.read_csv(tmp_path / "ray" / name).drop(columns="seconds")
-        assert len(local) == 2  # 1 random + 1 learned trial
-        pd.testing.assert_frame_equal(on_ray, local, check_exact=False, rtol=1e-9)

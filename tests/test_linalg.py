@@ -97,6 +97,29 @@ def test_the_guard_sees_a_batched_lapack_call():
     assert batched_lapack_calls(jax.vmap(cholesky), a) == []
 
 
+def test_off_the_cpu_a_batch_goes_to_the_batched_solver(monkeypatch):
+    """The GPU branch, forced on the CPU (``native_batching``): the vmapped Cholesky and solves
+    become single batched calls (no loop), with the loop's results and derivatives."""
+    a = jax.vmap(random_spd, in_axes=(0, None))(jax.random.split(jax.random.key(4), 3), 6)
+    b = jax.random.normal(jax.random.key(5), (3, 6, 2))
+
+    def programs(x, y):
+        chol = jax.vmap(cholesky)(x)
+        return chol, jax.vmap(solve_lower)(chol, y), jax.vmap(solve_lower_t)(chol, y)
+
+    def loss(x, y):
+        return sum(jnp.sum(jnp.sin(z)) for z in programs(0.5 * (x + jnp.swapaxes(x, 1, 2)), y))
+
+    looped, looped_grad = programs(a, b), jax.grad(loss, argnums=(0, 1))(a, b)
+    assert batched_lapack_calls(programs, a, b) == []
+    monkeypatch.setattr("numerics.linalg.native_batching", lambda: True)
+    jax.clear_caches()  # the traces above chose the CPU branch
+    assert sorted(set(batched_lapack_calls(programs, a, b))) == ["lapack_dpotrf_ffi", "lapack_dtrsm_ffi"]
+    assert "while" not in str(jax.make_jaxpr(programs)(a, b))  # no lax.map left
+    for native, loop in zip(programs(a, b) + jax.grad(loss, argnums=(0, 1))(a, b), looped + looped_grad):
+        np.testing.assert_allclose(native, loop, rtol=1e-12, atol=1e-12)
+
+
 @pytest.mark.parametrize("task_name", ["cartpole", "unicycle"])
 def test_the_mjx_step_batches_no_lapack_call(task_name):
     """Regression test for a unicycle TP estimate through contact (P = 300) that hung at 0 % CPU

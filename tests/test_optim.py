@@ -66,3 +66,27 @@ def test_non_finite_estimates_at_chosen_steps_are_counted_and_move_nothing():
         momentum = 0.9 * momentum + (0.0 if step in (2, 5) else 1.0)
         moved += 5e-4 * momentum
     np.testing.assert_allclose(result.theta, theta0 - moved * jnp.sign(theta0), rtol=1e-12)
+
+
+def test_a_float32_particle_gradient_past_1e19_still_takes_its_step():
+    """Regression (RP's repeat 0 at k = 1, ``reports/diagnostics/rp_nonfinite_replay.py``): float32
+    particle gradients with a median near 1e15 and one particle at 1e25 are finite, but their
+    squares pass float32's 3.4e38, so a float32 variance overflowed and the optimiser moved those
+    parameters nothing. The variance is now accumulated in float64 (x64 is on in the tests): it is
+    finite, equals numpy's float64 variance, and the step is float64's g / sqrt(g^2 + var)."""
+    from estimators.base import particle_estimate
+
+    rng = np.random.default_rng(13)
+    particle_grads = (1e15 * rng.standard_normal((300, 3))).astype(np.float32)
+    particle_grads[17, 1] = 1e25  # one exploded particle, as at the replay's non-finite steps
+    estimate = particle_estimate(jnp.float32(1.0), jnp.asarray(particle_grads))
+    assert estimate.grad.dtype == jnp.float32 and np.isfinite(estimate.grad).all()
+    wide = particle_grads.astype(np.float64)
+    expected_var = wide.var(axis=0, ddof=1) / 300
+    np.testing.assert_allclose(estimate.grad_var, expected_var, rtol=1e-12)
+    opt = pipps_sgd()
+    updates, state = opt.update(estimate.grad, opt.init(jnp.zeros(3, jnp.float32)), grad_var=estimate.grad_var)
+    assert updates.dtype == jnp.float32 and state.momentum.dtype == jnp.float32
+    g = np.asarray(estimate.grad, np.float64)
+    np.testing.assert_allclose(updates, -5e-4 * g / np.sqrt(g**2 + expected_var), rtol=1e-6)
+    assert abs(float(updates[1])) > 1e-5  # the exploded parameter moves (it moved 0 in float32)
