@@ -307,6 +307,8 @@ def main(argv=None) -> None:
         left = left[:args.max_units]
     print(f"{args.plan}: {len(units)} units, {len(left)} to run", file=sys.stderr, flush=True)
     start = time.perf_counter()
+    if "jax" not in sys.modules:  # this process runs units itself when --workers is 1
+        worker_init()
     if args.engine == "ray":
         run_ray(left)
     else:
