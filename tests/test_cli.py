@@ -7,7 +7,7 @@ import pytest
 
 from harness.cli import field_docs, parse, undocumented_fields
 
-CLIS = ["bench", "compare", "landscape", "learn", "mjx_agreement", "sweep", "variance"]
+CLIS = ["bench", "compare", "landscape", "learn", "mjx_agreement", "summary", "sweep", "variance"]
 
 
 @pytest.mark.parametrize("name", CLIS)

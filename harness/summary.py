@@ -1,0 +1,203 @@
+"""The claims table: which of the paper's claims reproduce, from the committed results alone.
+
+    python -m harness.summary            # writes reports/SUMMARY.md and the README's claims table
+    python -m harness.summary --check    # exit status 1 if either differs from what it would write
+
+Each claim is a row: the claim, the paper's number, ours, a verdict by a rule fixed here before
+the numbers it decides, and the report it comes from. The gradient claims come from the variance
+experiment's rows at its pinned scenario (``harness.variance.run`` reuses them: nothing is
+computed), the learning claims from the learning CSVs (``harness.learn_report.success_rows``).
+Claims with no data yet say so and name the plan that will decide them.
+
+Verdict rules:
+- "TP has the lowest variance" and "BIW-LR below LR": holds in every cell, mixed in some,
+  does not hold in none (cells: particle counts x the two points of the line).
+- "RP's variance jumps along the line": the ratio var(delta theta = 1.5) / var(0) per particle
+  count; holds if every ratio is at least 1e2, reversed if every ratio is below 1, else mixed.
+- A learning table: agrees in the cells whose Wilson 95 % interval holds the paper's rate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+from typing import NamedTuple
+
+import numpy as np
+
+from harness.cli import parse
+from harness.records import ROOT, read_csv
+
+CLAIMS_START = "<!-- claims table: written by python -m harness.summary; do not edit by hand -->"
+CLAIMS_END = "<!-- end of claims table -->"
+VARIANCE_COMMANDS = {
+    "cartpole": ["--task", "cartpole"],
+    "unicycle": ["--task", "unicycle", "--scenario-trials", "2", "--scenario-steps", "200",
+                 "--scenario-estimator", "tp"],
+}
+"""The variance reports' commands (the unicycle keeps the settings of its pinned scenario)."""
+LEARNING_TABLES = {"cartpole, angle cost, k = 1": "learn_cartpole_angle_k1"}
+"""Learning tables at the paper's settings (preset ``paper``), by the report's stem."""
+
+
+def paper_rates(task: str, cost: str, k: float, methods: tuple[str, ...]) -> str:
+    """The paper's rates of ``methods`` in one cell (``harness.learn_report.PAPER``), "tp 0.82, ..."."""
+    from harness.learn_report import PAPER
+
+    return ", ".join(f"{m} {PAPER[(task, cost, k)][m]:.2f}" for m in methods)
+
+
+def pending_claims() -> list[tuple[str, str, str]]:
+    """Claims whose runs are in ``plans/paper_tables.toml`` and not yet in reports/: (claim, the paper's
+    rates, report stem)."""
+    return [
+        ("LR and TP degrade least as the noise k grows (claim b)",
+         "; ".join(f"k = {k:g}: {paper_rates('cartpole', 'angle', k, ('tp', 'lr', 'pilco'))}" for k in (0.01, 16.0)),
+         "learn_cartpole_angle_k0.01, _k16"),
+        ("TP+sigma_n above TP at low noise (claim d)", paper_rates("cartpole", "angle", 0.01, ("tp+sigma_n", "tp")),
+         "learn_cartpole_angle_k0.01"),
+        ("With the tip cost, PILCO and GR beat the particle methods",
+         paper_rates("cartpole", "tip", 1.0, ("pilco", "gr", "tp", "lr")), "learn_cartpole_tip_k1"),
+        ("The unicycle at the paper's preset", paper_rates("unicycle", "default", 1.0, ("tp", "pilco")),
+         "learn_unicycle_default_k1"),
+    ]
+
+
+class Claim(NamedTuple):
+    claim: str
+    paper: str
+    ours: str
+    verdict: str
+    report: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Args:
+    """Write the claims table (reports/SUMMARY.md and the README's) from the committed results."""
+
+    check: bool = False
+    """Write nothing; exit with status 1 if SUMMARY.md or the README's table is not what would be written."""
+    reports: str = "reports"
+    """Folder of the reports (relative to the repository root unless absolute)."""
+
+
+def cell_rule(count: int, total: int) -> str:
+    return "holds" if count == total else "does not hold" if count == 0 else "mixed"
+
+
+def jump_rule(ratios: np.ndarray) -> str:
+    return "holds" if (ratios >= 1e2).all() else "reversed" if (ratios < 1).all() else "mixed"
+
+
+def variance_rows(task: str, reports: str):
+    """The variance report's rows at its pinned scenario (``harness.variance.run``: the committed rows are
+    reused; only a cell missing from the CSV would be computed)."""
+    import jax
+
+    from harness import variance
+
+    jax.config.update("jax_enable_x64", True)
+    args = parse(variance.Args, VARIANCE_COMMANDS[task] + ["--out", reports])
+    return variance.run(args)
+
+
+def variance_claims(task: str, reports: str) -> list[Claim]:
+    rows, _ = variance_rows(task, reports)
+    var = rows.pivot_table(index=["delta_theta", "particles"], columns="estimator", values="variance")
+    link = f"[variance_{task}_gp](variance_{task}_gp.md)"
+    others = var[[c for c in ("rp", "lr", "biw_lr") if c in var.columns]].min(axis=1)
+    share = var.tp / others
+    lowest = int((share < 1).sum())
+    claims = [Claim(f"{task}: TP has the lowest gradient variance", "10-50 % below the others at P <= 250",
+                    f"lowest in {lowest} of {len(share)} cells (TP / best other {share.min():.2f}-{share.max():.2f})",
+                    cell_rule(lowest, len(share)), link)]
+    ratio = var.biw_lr / var.lr
+    claims.append(Claim(f"{task}: batch importance weights lower LR's variance", "BIW-LR below LR",
+                        f"below in {int((ratio < 1).sum())} of {len(ratio)} cells (BIW-LR / LR {ratio.min():.2f}-"
+                        f"{ratio.max():.2f})", cell_rule(int((ratio < 1).sum()), len(ratio)), link))
+    deltas = sorted(rows.delta_theta.unique())
+    rp = var.rp.unstack("delta_theta")
+    jump = (rp[deltas[-1]] / rp[deltas[0]]).to_numpy()
+    claims.append(Claim(f"{task}: RP's variance jumps along the line (curse of chaos)",
+                        "about 4e5-fold, to 1e8-1e15",
+                        f"x {jump.min():.2g} to x {jump.max():.2g} from delta theta {deltas[0]:g} to {deltas[-1]:g} "
+                        f"({rp[deltas[-1]].min():.1e}-{rp[deltas[-1]].max():.1e})", jump_rule(jump), link))
+    return claims
+
+
+def learning_claims(name: str, stem: str, reports: str) -> list[Claim]:
+    from harness.learn_report import success_rows
+
+    success = success_rows(read_csv(os.path.join(reports, stem + ".csv")))
+    compared = success[success.inside != "-"]
+    outside = compared[compared.inside == "no"]
+    apart = "; ".join(f"{r.label} {r.rate:.2f} [{r.low:.2f}, {r.high:.2f}] against {r.paper:.2f}"
+                      for r in outside.itertuples())
+    verdict = f"agrees in {len(compared) - len(outside)} of {len(compared)} cells"
+    repeats = sorted({int(n) for n in success.n})
+    counts = f"{repeats[0]}" if len(repeats) == 1 else f"{repeats[0]}-{repeats[-1]}"
+    return [Claim(f"learning, {name}: success rates", "Table 1's column",
+                  f"{counts} repeats per method" + (f"; outside: {apart}" if apart else ""), verdict,
+                  f"[{stem}]({stem}.md)")]
+
+
+def all_claims(reports: str) -> list[Claim]:
+    claims = [c for task in VARIANCE_COMMANDS for c in variance_claims(task, reports)]
+    claims += [c for name, stem in LEARNING_TABLES.items() for c in learning_claims(name, stem, reports)]
+    claims += [Claim(claim, paper, "not run yet", "undecided", f"`{stem}` (plans/paper_tables.toml)")
+               for claim, paper, stem in pending_claims()]
+    return claims
+
+
+def claims_table(claims: list[Claim], link_prefix: str = "") -> str:
+    """The markdown table; ``link_prefix`` is put before each report link (``reports/`` in the README)."""
+    lines = ["| claim | the paper | ours | verdict | report |", "|---|---|---|---|---|"]
+    for c in claims:
+        report = c.report.replace("](", f"]({link_prefix}") if c.report.startswith("[") else c.report
+        lines.append(f"| {c.claim} | {c.paper} | {c.ours} | {c.verdict} | {report} |")
+    return "\n".join(lines)
+
+
+def summary_text(claims: list[Claim]) -> str:
+    return "\n".join([
+        "# What reproduces", "",
+        "Written by `python -m harness.summary` from the committed results (verdict rules: "
+        "`harness/summary.py`). The README shows the same table.", "",
+        claims_table(claims), "",
+        "Every report states its command, settings and scenario; `python -m harness.reproduce` recomputes "
+        "them at a small size and compares.", ""])
+
+
+def readme_with_table(readme: str, claims: list[Claim]) -> str:
+    if CLAIMS_START not in readme or CLAIMS_END not in readme:
+        raise ValueError(f"README.md lacks the claims table's markers {CLAIMS_START!r} ... {CLAIMS_END!r}")
+    head, rest = readme.split(CLAIMS_START, 1)
+    _, tail = rest.split(CLAIMS_END, 1)
+    return head + CLAIMS_START + "\n" + claims_table(claims, "reports/") + "\n" + CLAIMS_END + tail
+
+
+def main(argv=None) -> None:
+    args = parse(Args, argv)
+    reports = args.reports if os.path.isabs(args.reports) else os.path.join(ROOT, args.reports)
+    claims = all_claims(reports)
+    targets = {os.path.join(reports, "SUMMARY.md"): summary_text(claims)}
+    readme = os.path.join(ROOT, "README.md")
+    with open(readme) as f:
+        targets[readme] = readme_with_table(f.read(), claims)
+    stale = []
+    for path, text in targets.items():
+        old = open(path).read() if os.path.exists(path) else None
+        if old != text:
+            stale.append(path)
+            if not args.check:
+                with open(path, "w") as f:
+                    f.write(text)
+    if args.check and stale:
+        print(f"error: {', '.join(stale)} not as python -m harness.summary writes it: run it", file=sys.stderr)
+        raise SystemExit(1)
+    print(f"{'checked' if args.check else 'wrote'} {', '.join(targets)}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
