@@ -208,7 +208,7 @@ def run(args: Args) -> tuple[pd.DataFrame, Reference, dict[str, scenario_lib.Set
                                  jax.random.fold_in(seed_key, 2))
         stats = {**cell_statistics(rep), **alignment(rep.grads, reference.grad)}
         table.append({**row_key, **stats, "scenario_settings": args.scenario_name})
-        jax.clear_caches()  # no later cell reuses its programs (README: memory mappings)
+        jax.clear_caches()  # no later cell reuses its programs (docs/extending.md: memory mappings)
         print(f"[{index + 1}/{len(cells)}] {model:3s} {name:7s} P={num_particles:5d}: variance {stats['variance']:.3e}, "
               f"cosine {stats['cosine']:.3f} +- {stats['cosine_ci']:.3f}, rel. error {stats['rel_error']:.3g}",
               file=sys.stderr, flush=True)

@@ -83,7 +83,7 @@ these fix it for the whole learning run, every trial optimising on the same part
 (``learning_run(optimisation_key_per_run=True)``)."""
 
 READINGS = ("pilco-sigma_n", *NOISE_FIXED_PER_RUN)
-"""Methods that read one of the paper's conventions otherwise (README, "Conventions"). They run into their own CSV
+"""Methods that read one of the paper's conventions otherwise (docs/conventions.md). They run into their own CSV
 (``--out reports/readings``) and take no part in the success threshold of a report that pools them beside the table
 (``harness.learn_report TABLE.csv READINGS.csv --out STEM``), so that they are judged at the table's cut."""
 
@@ -245,7 +245,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
               f" ({checkpoint})", file=sys.stderr, flush=True)
         if (written := saved.get("jax", "unrecorded jax")) != JAX_VERSIONS:
             print(f"  WARNING: the checkpoint's trials ran under {written}, this process under {JAX_VERSIONS}: the "
-                  "batch's trials would mix library versions (README: the jax 0.10.2 entry)", file=sys.stderr,
+                  "batch's trials would mix library versions (docs/deviations.md: the jax 0.10.2 entry)", file=sys.stderr,
                   flush=True)
     start = time.perf_counter() - (rows[-1]["seconds"] if rows else 0.0)
 
@@ -311,7 +311,7 @@ def run(args: Args):
         table.extend([{**row_key(args, task, method, row["repeat"]), **row}
                       for row in run_experiments(args, method, missing)])
         os.remove(checkpoint_path(args, method, missing))  # its rows are in the table now
-        jax.clear_caches()  # each trial compiled its own programs (README: memory mappings)
+        jax.clear_caches()  # each trial compiled its own programs (docs/extending.md: memory mappings)
     return current_rows(args, table)
 
 
