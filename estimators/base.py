@@ -20,6 +20,7 @@ import jax.numpy as jnp
 
 from models.prediction import Model
 from tasks.base import Task
+from tasks.forms import SaturatingCost, TrigLinearMap
 from tasks.policies import Policy, identity
 
 
@@ -37,7 +38,7 @@ class Problem:
     variances before sampling (the paper's variants: TP-sigma_f samples only the learned noise,
     ``model_var_scale=0``; TP+sigma_n uses ``noise_var_scale=100``). A pytree whose only data
     is ``model_params`` (e.g. the GP posterior), so it can be passed to jitted functions.
-    ``moment_forms`` (``estimators.pilco.MomentForms``) is what PILCO needs beyond this, or None.
+    ``moment_forms`` (``MomentForms``) is what PILCO needs beyond this, or None.
     """
 
     model: Model
@@ -71,11 +72,19 @@ def task_problem(task: Task, model: Model, model_params: Any = None, *, policy: 
     )
 
 
+class MomentForms(NamedTuple):
+    """What PILCO needs beyond the particle problem: the policy's features and the cost as
+    forms (``tasks.forms``), and the initial distribution N(init_mean, init_cov) (nested tuples)."""
+
+    features: TrigLinearMap
+    cost: SaturatingCost
+    init_mean: tuple
+    init_cov: tuple
+
+
 def task_moment_forms(task: Task):
     """The task's features, cost and initial moments for PILCO, or None if the task does not
     declare them."""
-    from estimators.pilco import MomentForms
-
     initial = task.model_initial_moments
     if task.policy_feature_map is None or task.cost_form is None or initial is None:
         return None

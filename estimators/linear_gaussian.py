@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from estimators.base import Problem
-from estimators.pilco import MomentForms
+from estimators.base import MomentForms
 from models.prediction import Prediction
 from tasks.forms import PolicyForm, SaturatingCost, TrigLinearMap
 from tasks.policies import LinearParams, Policy

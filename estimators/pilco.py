@@ -22,19 +22,8 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from estimators.base import Estimate, Problem, check_theta, task_moment_forms
+from estimators.base import Estimate, MomentForms, Problem, check_theta, task_moment_forms
 from models.form_moments import expected_cost, map_moments, policy_moments
-from tasks.forms import SaturatingCost, TrigLinearMap
-
-
-class MomentForms(NamedTuple):
-    """What PILCO needs beyond the particle problem: the policy's features and the cost as
-    forms, and the initial distribution N(init_mean, init_cov) (nested tuples)."""
-
-    features: TrigLinearMap
-    cost: SaturatingCost
-    init_mean: tuple
-    init_cov: tuple
 
 
 def symmetric(S: jax.Array) -> jax.Array:

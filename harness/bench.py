@@ -37,7 +37,7 @@ from estimators.base import task_problem
 from harness.cli import int_list, parse, str_list
 from harness import bench_learning
 from harness.episodic import add_episode
-from harness.learn import DEFAULT_METHODS
+from harness.methods import DEFAULT_METHODS
 from harness.records import code_version
 from models import gp
 from tasks.rollout import run_episode

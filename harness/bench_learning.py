@@ -38,7 +38,8 @@ import pandas as pd
 import tasks
 from estimators.base import task_problem
 from harness.episodic import add_episode, evaluate_policy, in_precision, policy_optimiser
-from harness.learn import METHODS, PRESETS
+from harness.learn import PRESETS
+from harness.methods import METHODS, runnable
 from models import gp, sparse_gp
 from tasks.rollout import run_episode
 
@@ -71,9 +72,9 @@ def buffers(task, key, num_trials: int):
 
 def optimiser_seconds(problem, posterior, theta, method: str, settings: dict, timed_steps: int, dtype):
     """(seconds per optimiser step, compile seconds) at this posterior, in ``dtype``."""
-    name, overrides = METHODS[method]
-    problem = dataclasses.replace(problem, model_params=posterior, **overrides)
-    optimise = jax.jit(in_precision(policy_optimiser(name, timed_steps, settings["particles"]), dtype))
+    chosen = METHODS[method]
+    problem = dataclasses.replace(problem, model_params=posterior, **chosen.overrides)
+    optimise = jax.jit(in_precision(policy_optimiser(chosen.estimator, timed_steps, settings["particles"]), dtype))
     key = jax.random.key(0)
     start = time.perf_counter()
     compiled = optimise.lower(problem, theta, key).compile()
@@ -98,9 +99,9 @@ def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods
     pseudo-input RBF form (the default before issue 18), ``fitc_methods`` in float64 with FITC
     past ``NUM_INDUCING`` rows (module docstring), ``fitc_float32_methods`` with both."""
     everything = [*methods, *float32_methods, *pseudo_input_methods, *fitc_methods, *fitc_float32_methods]
-    unknown = [m for m in everything if m not in METHODS]
+    unknown = [m for m in everything if m not in runnable()]
     if unknown:
-        raise ValueError(f"unknown methods {unknown}; valid methods: {list(METHODS)}")
+        raise ValueError(f"unknown methods {unknown}; valid methods: {runnable()}")
     settings = PAPER_SETTINGS
     task = tasks.make("cartpole")
     key = jax.random.key(seed)
@@ -127,7 +128,7 @@ def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods
             + [(m, "float32", jnp.float32, "direct", NUM_INDUCING) for m in fitc_float32_methods])
     rows = []
     for index, (method, dtype_name, dtype, form, inducing) in enumerate(runs):
-        steps = settings["pilco_steps"] if METHODS[method][0] == "pilco" else settings["optimiser_steps"]
+        steps = settings["pilco_steps"] if METHODS[method].optimiser == "lbfgs" else settings["optimiser_steps"]
         chosen = posteriors_fitc if inducing else posteriors
         step_s, compile_s = {}, []
         for t in TIMED_TRIALS:

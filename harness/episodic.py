@@ -222,7 +222,7 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
     ``optimisation_key_per_run``: every trial's optimisation gets the same key
     ``fold_in(key, 20_000)``: a fixed-noise estimator (RP_FS, GR_FS) then optimises on the same
     particles in every trial of the run, the other reading of the paper's "fixed seed"
-    (``harness.learn.NOISE_FIXED_PER_RUN``); the default fixes them per trial.
+    (``harness.methods.Method.noise_fixed_per_run``); the default fixes them per trial.
 
     ``resume``: continue from that state (the data and theta ``on_trial`` saw after trial
     ``trials_done - 1``) instead of starting afresh; the trials after it are the same

@@ -43,49 +43,16 @@ import numpy as np
 import tasks
 from estimators.base import task_problem
 from estimators.pilco import check_task
+from harness import learn_report
 from harness.cli import parse, str_list
 from harness.episodic import RunState, evaluate_policy, in_precision, learning_run, policy_optimiser
+from harness.methods import DEFAULT_METHODS, METHODS, method, runnable
 from harness.records import ResultTable, code_version, load_pickle, save_pickle
 from models import gp
-
-METHODS = {
-    "pilco": ("pilco", {}),
-    "rp": ("rp", {}),
-    "rp_fs": ("rp_fs", {}),
-    "gr": ("gr", {}),
-    "gr_fs": ("gr_fs", {}),
-    "lr": ("biw_lr", {}),
-    "lr_plain": ("lr", {}),
-    "tp": ("tp", {}),
-    "tp-sigma_f": ("tp", {"model_var_scale": 0.0}),
-    "tp+sigma_n": ("tp", {"noise_var_scale": 100.0}),
-    "pilco-sigma_n": ("pilco", {"noise_var_scale": 0.0}),
-    "rp_fs_run": ("rp_fs", {}),
-    "gr_fs_run": ("gr_fs", {}),
-}
-"""method name -> (estimator, problem overrides). The paper's learning column "LR" is its
-"model-based batch importance weighted likelihood ratio", so the method ``lr`` is the
-``biw_lr`` estimator; ``lr_plain`` is LR without the batch importance weights. The paper's TP
-variants change the model's variances, not the estimator. ``pilco-sigma_n`` is pilco-matlab's
-reading of PILCO's step: the latent function's variance propagated without the learned noise
-sn^2 (``gp/gp0d.m``, ``base/propagate.m``), where ``pilco`` adds sn^2 to every next state as the
-particle methods sample it."""
 
 JAX_VERSIONS = f"jax {jax.__version__}, jaxlib {jaxlib.__version__}"
 """Saved with every checkpoint: a resume under other versions says so (round-off, and bugs such
 as jaxlib 0.10.2's, differ between them)."""
-
-NOISE_FIXED_PER_RUN = {"rp_fs_run": "rp_fs", "gr_fs_run": "gr_fs"}
-"""Method -> the paper's method it reads otherwise: the paper's RP_FS and GR_FS fix "the random
-seed", and it does not say for how long. ``rp_fs`` and ``gr_fs`` fix the noise for one trial's
-policy optimisation (``estimators.base.FixedNoise``) and draw it afresh for the next trial;
-these fix it for the whole learning run, every trial optimising on the same particles
-(``learning_run(optimisation_key_per_run=True)``)."""
-
-READINGS = ("pilco-sigma_n", *NOISE_FIXED_PER_RUN)
-"""Methods that read one of the paper's conventions otherwise (docs/conventions.md). They run into their own CSV
-(``--out reports/readings``) and take no part in the success threshold of a report that pools them beside the table
-(``harness.learn_report TABLE.csv READINGS.csv --out STEM``), so that they are judged at the table's cut."""
 
 PRESETS = {
     # learned trials (0: the task preset's), optimiser steps, particles, evaluation runs,
@@ -101,8 +68,6 @@ PRESETS = {
     "paper": dict(learned_trials=0, optimiser_steps=600, particles=300, eval_runs=30, pilco_steps=150, gp_steps=100),
 }
 PARTICLE_ONLY = ("optimiser_steps", "particles")
-DEFAULT_METHODS = "pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n"
-"""The paper's columns."""
 KEY_COLUMNS = ["task", "cost", "noise_k", "task_options", "method", "repeat", "seed", "settings"]
 """A row's key: ``task_options`` is every option of the task it ran (``tasks.describe``), so a
 change of convention (e.g. the angle cost's scale) never reuses another's rows."""
@@ -121,7 +86,7 @@ class Args:
     task_options: str = ""
     """Task options over its preset's, NAME=VALUE,... (e.g. angle_cost_scale=1)."""
     methods: str = DEFAULT_METHODS
-    """Comma-separated methods (learn.METHODS)."""
+    """Comma-separated methods (harness.methods.METHODS)."""
     repeats: int = 10
     """Learning runs per method (repeat r uses seed + r)."""
     first_repeat: int = 0
@@ -159,12 +124,12 @@ class Args:
     def __post_init__(self):
         if self.preset not in PRESETS:
             raise ValueError(f"unknown preset {self.preset!r}; valid presets: {sorted(PRESETS)}")
-        unknown = [m for m in str_list(self.methods) if m not in METHODS]
+        unknown = [m for m in str_list(self.methods) if m not in runnable()]
         if unknown:
-            raise ValueError(f"unknown methods {unknown}; valid methods: {list(METHODS)} (a new estimator becomes "
-                             "a method with an entry in harness.learn.METHODS)")
+            raise ValueError(f"unknown methods {unknown}; valid methods: {runnable()} (a new estimator becomes "
+                             "a method with an entry in harness.methods.METHODS)")
         task = self.make_task()  # fails with the valid tasks and options
-        if any(METHODS[m][0] == "pilco" for m in str_list(self.methods)):
+        if any(method(m).estimator == "pilco" for m in str_list(self.methods)):
             check_task(task)
         if self.repeats < 1 or self.batch < 1:
             raise ValueError("repeats and batch must be >= 1")
@@ -193,7 +158,7 @@ class Args:
     def settings_name(self, method: str) -> str:
         """The settings that ``method`` uses, as a CSV key: PILCO ignores the particle
         optimiser's steps and particles; the particle methods ignore PILCO's steps."""
-        unused = PARTICLE_ONLY if METHODS[method][0] == "pilco" else ("pilco_steps",)
+        unused = PARTICLE_ONLY if METHODS[method].optimiser == "lbfgs" else ("pilco_steps",)
         name = "-".join(f"{key}{value}" for key, value in self.settings.items() if key not in unused)
         return (name + (f"-fitc{self.gp_inducing}" if self.gp_inducing else "")
                 + ("-rollout_f32" if self.float32_rollouts(method) else ""))
@@ -201,7 +166,7 @@ class Args:
     def float32_rollouts(self, method: str) -> bool:
         """Whether ``method`` optimises on float32 particle rollouts (``rollout_float32``: the
         particle methods, with the GP trained and factorised in float64; PILCO stays float64)."""
-        return self.rollout_float32 and METHODS[method][0] != "pilco"
+        return self.rollout_float32 and METHODS[method].optimiser != "lbfgs"
 
     @property
     def stem(self) -> str:
@@ -226,13 +191,12 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     """One learning run per repeat, all vmapped together (``learning_run(batched=True)``),
     continuing from the batch's checkpoint if there is one; returns a row per repeat and trial
     (progress on stderr)."""
-    task, settings = args.make_task(), args.settings
-    name, overrides = METHODS[method]
-    steps = settings["pilco_steps"] if name == "pilco" else settings["optimiser_steps"]
-    optimise = policy_optimiser(name, steps, settings["particles"])
+    task, settings, chosen = args.make_task(), args.settings, METHODS[method]
+    steps = settings["pilco_steps"] if chosen.optimiser == "lbfgs" else settings["optimiser_steps"]
+    optimise = policy_optimiser(chosen.estimator, steps, settings["particles"])
     if args.float32_rollouts(method):
         optimise = in_precision(optimise, jnp.float32)
-    problem = task_problem(task, gp.GPModel(task), **overrides)
+    problem = task_problem(task, gp.GPModel(task), **chosen.overrides)
     keys = jnp.stack([jax.random.key(args.seed + r) for r in repeats])
     evaluate = jax.vmap(lambda th, k: evaluate_policy(task, problem.policy, th, k, num_runs=settings["eval_runs"]))
     num_trials = task.num_random_trials + settings["learned_trials"]
@@ -274,7 +238,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
 
     learning_run(task, problem, keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
                  batched=True, trim_model=True, resume=resume, num_inducing=args.gp_inducing,
-                 optimisation_key_per_run=method in NOISE_FIXED_PER_RUN)
+                 optimisation_key_per_run=chosen.noise_fixed_per_run)
     return rows
 
 
@@ -289,7 +253,8 @@ def current_rows(args: Args, table: ResultTable):
     """Every method's rows in ``table`` at this run's task options, settings and seeds, whichever
     process ran them (so that two processes splitting the methods of one CSV write the same report)."""
     rows = table.read()
-    current = np.array([m in METHODS and s == args.settings_name(m) for s, m in zip(rows.settings, rows.method)], bool)
+    valid = runnable()
+    current = np.array([m in valid and s == args.settings_name(m) for s, m in zip(rows.settings, rows.method)], bool)
     return rows[current & (rows.task_options == tasks.describe(args.make_task()))
                 & (rows.seed == rows.repeat + args.seed)]
 
@@ -316,8 +281,6 @@ def run(args: Args):
 
 
 def main(argv=None) -> None:
-    from harness import learn_report
-
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
     # Asynchronous CPU dispatch with debug callbacks (the optimiser's progress lines) is a known

@@ -29,6 +29,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from harness.methods import INVALID as INVALID_METHODS
+from harness.methods import METHODS, PAPER_METHODS, PAPER_RATES, READINGS, paper_rate
 from harness.records import read_csv
 
 Z95 = float(stats.norm.ppf(0.975))
@@ -38,23 +40,6 @@ ALPHA = 0.05
 ROBUSTNESS = 0.1
 """Every rate is recomputed at the threshold x (1 - ROBUSTNESS) and x (1 + ROBUSTNESS)."""
 SCALES = (1 - ROBUSTNESS, 1.0, 1 + ROBUSTNESS)
-PAPER_METHODS = ("pilco", "rp", "rp_fs", "gr", "gr_fs", "lr", "tp")
-"""The methods of every column of the paper's tables, the ones the orderings compare."""
-
-PAPER = {  # PIPPS (Parmas et al. 2018), Tables 1-2: success rates over 100 repeats
-    ("cartpole", "angle", 0.01): dict(pilco=0.88, rp=0.69, rp_fs=0.24, gr=0.63, gr_fs=0.74, lr=0.57, tp=0.82,
-                                      **{"tp+sigma_n": 0.96}),
-    ("cartpole", "angle", 1.0): dict(pilco=0.79, rp=0.74, rp_fs=0.23, gr=0.89, gr_fs=0.71, lr=0.96, tp=0.99,
-                                     **{"tp-sigma_f": 0.93}),
-    ("cartpole", "angle", 4.0): dict(pilco=0.70, rp=0.58, rp_fs=0.08, gr=0.62, gr_fs=0.41, lr=0.94, tp=0.95),
-    ("cartpole", "angle", 9.0): dict(pilco=0.37, rp=0.44, rp_fs=0.04, gr=0.34, gr_fs=0.25, lr=0.86, tp=0.83),
-    ("cartpole", "angle", 16.0): dict(pilco=0.01, rp=0.11, rp_fs=0.00, gr=0.08, gr_fs=0.02, lr=0.45, tp=0.40),
-    ("cartpole", "tip", 0.01): dict(pilco=0.92, rp=0.44, rp_fs=0.20, gr=0.47, gr_fs=0.78, lr=0.36, tp=0.54),
-    ("cartpole", "tip", 1.0): dict(pilco=0.73, rp=0.15, rp_fs=0.08, gr=0.68, gr_fs=0.50, lr=0.28, tp=0.48),
-    ("unicycle", "default", 1.0): dict(pilco=0.91, rp=0.80, rp_fs=0.39, gr=0.96, gr_fs=0.63, lr=0.47, tp=0.94),
-}
-
-
 def otsu_threshold(values: np.ndarray) -> float:
     """The cut between sorted values that minimises the summed within-group variance; non-finite
     values (a run whose evaluation diverged: a failure at any cut) take no part."""
@@ -76,18 +61,6 @@ def wilson_interval(successes: int, n: int) -> tuple[float, float]:
     half = Z95 * np.sqrt(p * (1 - p) / n + Z95**2 / (4 * n**2)) / (1 + Z95**2 / n)
     # exact ends where every run failed or learned (round-off would leave them a few ulps inside 0 or 1)
     return (0.0 if successes == 0 else centre - half), (1.0 if successes == n else centre + half)
-
-
-INVALID_METHODS = {
-    "rp_fs_seed0": "every repeat and trial optimised on the same particles (noise seed 0: the fixed-seed bug "
-                   "fixed in issue 18); not the paper's RP_FS",
-    "gr_fs_seed0": "every repeat and trial optimised on the same particles (noise seed 0: the fixed-seed bug "
-                   "fixed in issue 18), and resampled with xi = eps as `gr_xi_eq_eps`; not the paper's GR_FS",
-    "gr_xi_eq_eps": "each resampled particle reused the noise that had sampled it (xi = eps: the resampling-key "
-                    "bug fixed on 2026-12-06); not the paper's GR",
-    "gr_fs_xi_eq_eps": "GR_FS with xi = eps as `gr_xi_eq_eps`; not the paper's GR_FS",
-}
-"""Method names of rows kept for the record that measure no method of the paper, and why."""
 
 
 OPTIONS_IN_COLUMNS = ("noise_k", "cost_type")
@@ -145,9 +118,7 @@ def incomplete_lines(learned: pd.DataFrame) -> list[str]:
 
 
 def column_order(labels) -> list[str]:
-    """Labels in the paper's column order (``harness.learn.METHODS``), then any others."""
-    from harness.learn import METHODS
-
+    """Labels in the paper's column order (``harness.methods.METHODS``), then any others."""
     rank = {method: i for i, method in enumerate(METHODS)}
     return sorted(labels, key=lambda label: (rank.get(label.split(" [")[0], len(rank)), label))
 
@@ -190,7 +161,7 @@ THRESHOLD_KEYS = ["task", "cost", "scale"]
 def otsu_thresholds(final: pd.DataFrame) -> dict:
     """Otsu's threshold of the pooled final evaluation costs per (task, cost, scale), every k and method
     but those of ``INVALID_METHODS`` (kept for the record, they must not move the valid rates' cut) and
-    ``harness.learn.READINGS`` (judged at the table's cut), unless a group holds nothing else (a file of
+    ``harness.methods.READINGS`` (judged at the table's cut), unless a group holds nothing else (a file of
     readings, or of superseded runs, is cut on its own costs)."""
     return {key: otsu_threshold(pooled_rows(group).eval_mean.to_numpy())
             for key, group in final.groupby(THRESHOLD_KEYS)}
@@ -198,8 +169,6 @@ def otsu_thresholds(final: pd.DataFrame) -> dict:
 
 def pooled_rows(group: pd.DataFrame) -> pd.DataFrame:
     """The final rows of one threshold group whose costs make its cut (``otsu_thresholds``)."""
-    from harness.learn import READINGS
-
     for left_out in (list(INVALID_METHODS) + list(READINGS), list(INVALID_METHODS)):
         kept = group[~group.method.isin(left_out)]
         if len(kept):
@@ -224,9 +193,8 @@ def success_rows(rows: pd.DataFrame, scale: float = 1.0) -> pd.DataFrame:
     """One row per (task, cost, k, label), in the paper's method order: its ``method``, ``options``
     (the label's task options suffix), successes ``wins`` (final evaluation cost below ``scale`` x Otsu's threshold of
     the task and cost), ``n`` repeats, ``rate``, its Wilson 95 % ``low`` and ``high``, the ``paper``'s
-    rate (for a method of ``harness.learn.NOISE_FIXED_PER_RUN``, that of the
-    paper's method it reads; NaN where it has none) and ``inside`` (whether that lies in the interval)."""
-    from harness.learn import NOISE_FIXED_PER_RUN  # the other reading of a method has its rate
+    rate (for a reading, that of the paper's method it reads: ``harness.methods.paper_rate``; NaN where it has
+    none) and ``inside`` (whether that lies in the interval)."""
 
     final = final_evaluations(rows)
     thresholds = otsu_thresholds(final)
@@ -235,7 +203,7 @@ def success_rows(rows: pd.DataFrame, scale: float = 1.0) -> pd.DataFrame:
         method, options = group.method.iloc[0], group.options.iloc[0]  # the label is the method and options
         wins, n = int((group.eval_mean < scale * thresholds[(task, cost, cut)]).sum()), len(group)
         low, high = wilson_interval(wins, n)
-        paper = PAPER.get((task, cost, float(k)), {}).get(NOISE_FIXED_PER_RUN.get(method, method), np.nan)
+        paper = paper_rate(method, task, cost, k)
         cells.append(dict(task=task, cost=cost, k=float(k), label=label, method=method, options=options,
                           wins=wins, n=n, rate=wins / n, low=low, high=high, paper=paper,
                           inside=inside(paper, low, high), paper_p=paper_p(wins, n, paper)))
@@ -401,7 +369,7 @@ def claim_tp_not_below_pilco(group: pd.DataFrame) -> str:
     if absent := missing(cell.index, ["tp", "pilco"]):
         return absent + " at k = 1"
     tp, pilco = cell.loc["tp"], cell.loc["pilco"]
-    paper = PAPER.get((tp.task, tp.cost, 1.0), {})
+    paper = PAPER_RATES.get((tp.task, tp.cost, 1.0), {})
     theirs = f"; the paper's own: TP {paper['tp']:.2f}, PILCO {paper['pilco']:.2f}" if paper else ""
     return f"{rate_text(tp)} vs {rate_text(pilco)}: " + verdict(
         {"TP vs PILCO": (fisher_p(tp, pilco), tp.rate >= pilco.rate)}, "two-sided Fisher exact") + theirs
@@ -409,7 +377,7 @@ def claim_tp_not_below_pilco(group: pd.DataFrame) -> str:
 
 def needs_ks(task: str, cost: str, k: float) -> str:
     """Claim (b) undecided on a file with the single k ``k``: the k it needs (the paper's for the task and cost)."""
-    paper_ks = sorted(pk for t, c, pk in PAPER if (t, c) == (task, cost))
+    paper_ks = sorted(pk for t, c, pk in PAPER_RATES if (t, c) == (task, cost))
     needed = f"k in {{{', '.join(f'{pk:g}' for pk in paper_ks)}}}" if len(paper_ks) > 1 else "at least two k"
     return f"undecided: needs {needed} (this file has only k = {k:g})"
 

@@ -42,10 +42,10 @@ LEARNING_TABLES = {"cartpole, angle cost, k = 1": "learn_cartpole_angle_k1"}
 
 
 def paper_rates(task: str, cost: str, k: float, methods: tuple[str, ...]) -> str:
-    """The paper's rates of ``methods`` in one cell (``harness.learn_report.PAPER``), "tp 0.82, ..."."""
-    from harness.learn_report import PAPER
+    """The paper's rates of ``methods`` in one cell (``harness.methods.PAPER_RATES``), "tp 0.82, ..."."""
+    from harness.methods import PAPER_RATES
 
-    return ", ".join(f"{m} {PAPER[(task, cost, k)][m]:.2f}" for m in methods)
+    return ", ".join(f"{m} {PAPER_RATES[(task, cost, k)][m]:.2f}" for m in methods)
 
 
 def pending_claims() -> list[tuple[str, str, str]]:

@@ -36,10 +36,13 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from models.form_moments import map_moments
+from models.moment_matching import gp_moments
+from models.prediction import Prediction
 from numerics.distances import scaled_sq_distances
 from numerics.linalg import cholesky, solve_lower, solve_lower_t
-from models.prediction import Prediction
 from tasks.base import Task, check_vector
+from tasks.forms import with_controls
 
 
 # ----- the training buffer --------------------------------------------------------------------
@@ -464,10 +467,6 @@ class GPModel:
         unless ``model_var_scale`` is 0, plus ``noise_var_scale`` sn^2), and
         ``s_tp1 = s + delta`` with ``cov(s, delta) = cov(s, z) io_g io_delta``. Returns
         (mean (S,), cov (S, S))."""
-        from models.form_moments import map_moments
-        from models.moment_matching import gp_moments
-        from tasks.forms import with_controls
-
         if self.task.gp_feature_map is None:
             raise ValueError(f"task {self.task.name!r} declares no gp_feature_map: no moment matching")
         S = self.task.model_state_dim

@@ -29,7 +29,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from models.gp import GPPosterior
 from numerics.linalg import solve_det
 from tasks.policies import RBF_NOISE_STD, RBF_SIGNAL_STD, RBFNetwork
 
@@ -124,7 +123,7 @@ def gp_moments(inputs: jax.Array, beta: jax.Array, log_hyp: jax.Array, m: jax.Ar
 
 
 @jax.jit
-def gp_posterior_moments(post: GPPosterior, m: jax.Array, s: jax.Array) -> Moments:
+def gp_posterior_moments(post, m: jax.Array, s: jax.Array) -> Moments:
     """``gp_moments`` of the project's GP posterior (model uncertainty included, noise not):
     beta = alpha, k_inv = chol_inv^T chol_inv = K^-1, mask = post.mask."""
     k_inv = jnp.einsum("eki,ekj->eij", post.chol_inv, post.chol_inv)

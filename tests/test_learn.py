@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import learn, learn_report, records
+from harness import learn, learn_report, methods, records
 
 TINY = ["--repeats", "3", "--batch", "2", "--learned-trials", "1", "--optimiser-steps", "2", "--particles", "4", "--eval-runs", "2",
         "--pilco-steps", "2", "--gp-steps", "3"]
@@ -114,7 +114,7 @@ def test_non_finite_optimiser_steps_are_counted_in_the_table_and_flagged_in_the_
         return estimate
 
     monkeypatch.setitem(estimators.REGISTRY, "nan_tp", nan_tp)
-    monkeypatch.setitem(learn.METHODS, "nan_tp", ("nan_tp", {}))
+    monkeypatch.setitem(methods.METHODS, "nan_tp", methods.Method("nan_tp"))
     learn.main(TINY + ["--repeats", "2", "--optimiser-steps", "3", "--methods", "nan_tp", "--out", str(tmp_path)])
     rows = pd.read_csv(tmp_path / "learn_cartpole_angle_k1_quick.csv")
     assert (rows[rows.learned].nonfinite_steps == 3).all()  # every step of both repeats' learned trial
@@ -169,8 +169,8 @@ def test_bad_arguments(argv, message):
 def test_the_learning_tables_lr_is_the_papers_batch_importance_weighted_lr():
     """The paper's learning column "LR" is "model-based batch importance weighted likelihood
     ratio": the method ``lr`` must run that estimator; plain LR is ``lr_plain``."""
-    assert learn.METHODS["lr"] == ("biw_lr", {}) and learn.METHODS["lr_plain"] == ("lr", {})
-    assert "lr" in learn.DEFAULT_METHODS.split(",") and "lr_plain" not in learn.DEFAULT_METHODS.split(",")
+    assert methods.method("lr").estimator == "biw_lr" and methods.method("lr_plain").estimator == "lr"
+    assert "lr" in methods.DEFAULT_METHODS.split(",") and "lr_plain" not in methods.DEFAULT_METHODS.split(",")
 
 
 def test_the_per_run_fixed_noise_methods_keep_one_optimisation_key_for_the_whole_run():
@@ -201,9 +201,12 @@ def test_the_per_run_fixed_noise_methods_keep_one_optimisation_key_for_the_whole
     per_trial, per_run = keys_seen(False), keys_seen(True)
     assert not np.array_equal(per_trial[0], per_trial[1]) and np.array_equal(per_run[0], per_run[1])
     np.testing.assert_array_equal(per_run[0], per_trial[0])  # trial 1's key is the same in both readings
-    for method, paper_method in learn.NOISE_FIXED_PER_RUN.items():
-        assert learn.METHODS[method] == learn.METHODS[paper_method]  # the same estimator, only the key differs
-        assert estimators.make(learn.METHODS[method][0]).fixes_noise
+    per_run_methods = {name: m for name, m in methods.METHODS.items() if m.noise_fixed_per_run}
+    assert sorted(per_run_methods) == ["gr_fs_run", "rp_fs_run"]
+    for name, reading in per_run_methods.items():
+        paper = methods.method(reading.reads)  # the same estimator and overrides, only the key differs
+        assert (reading.estimator, reading.overrides) == (paper.estimator, paper.overrides)
+        assert estimators.make(reading.estimator).fixes_noise
 
 
 def test_success_statistics():

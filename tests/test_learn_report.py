@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import learn_report
+from harness import learn_report, methods
 
 OPTIONS = "preset=pipps,horizon=30,cost_type=angle"
 WIN, FAIL = 5.0, 30.0  # final costs of a learned and a failed run: Otsu's cut falls at 17.5 between them
@@ -138,7 +138,7 @@ def test_degradation_and_worst_method_claims():
 
 
 def test_claims_name_the_missing_methods_of_the_paper_and_are_whole_without_them():
-    every = {key: value for m in learn_report.PAPER_METHODS for key, value in wins(m, 9).items()}
+    every = {key: value for m in methods.PAPER_METHODS for key, value in wins(m, 9).items()}
     every.update(wins("rp_fs", 2))
     whole = orderings(every)[2]
     assert whole.startswith("- (c) RP_FS is the worst method (cartpole, angle, k = 1): RP_FS 0.20 [0.06, 0.51] n=10")
@@ -166,7 +166,7 @@ def test_invalid_runs_take_no_part_in_the_threshold():
 
 
 def test_other_readings_are_judged_at_the_tables_cut():
-    """A reading of a convention (``harness.learn.READINGS``) reported beside the table takes no part in its cut:
+    """A reading of a convention (``harness.methods.READINGS``) reported beside the table takes no part in its cut:
     TP's costs alone cut at 10.5, where pooling the reading's costs would cut elsewhere. Alone, a file of readings
     is cut on its own costs."""
     tp = {("tp", 1.0): [5.0] * 5 + [16.0] * 5}

@@ -118,14 +118,15 @@ def test_pilco_without_propagated_noise_drops_exactly_sn2(cartpole_problem):
     (the Monte Carlo tests above check the ``pilco`` step itself)."""
     import dataclasses
 
-    from harness.learn import METHODS
+    from harness.methods import method
 
     task, problem, theta = cartpole_problem
-    assert METHODS["pilco-sigma_n"] == ("pilco", {"noise_var_scale": 0.0})
+    reading = method("pilco-sigma_n")
+    assert reading.estimator == "pilco" and reading.overrides == {"noise_var_scale": 0.0} and reading.reads == "pilco"
     net = problem.policy.prepare(theta)
     m, S = jnp.asarray(problem.moment_forms.init_mean), jnp.asarray(problem.moment_forms.init_cov)
     m1, S1 = propagate(problem, net, m, S)
-    m0, S0 = propagate(dataclasses.replace(problem, **METHODS["pilco-sigma_n"][1]), net, m, S)
+    m0, S0 = propagate(dataclasses.replace(problem, **reading.overrides), net, m, S)
     sn2 = np.exp(2.0 * np.asarray(problem.model_params.log_hyp)[:, -1])
     np.testing.assert_allclose(m0, m1, rtol=1e-12)
     np.testing.assert_allclose(S1 - S0, np.diag(sn2), atol=1e-12 * np.abs(S1).max())
