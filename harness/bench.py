@@ -34,7 +34,7 @@ import pandas as pd
 import estimators
 import tasks
 from estimators.base import task_problem
-from harness.cli import int_list, parse, str_list
+from harness.cli import int_list, parse, run_command, str_list
 from harness import bench_learning
 from harness.episodic import add_episode
 from harness.methods import DEFAULT_METHODS
@@ -204,4 +204,4 @@ def write_report(args: Args, table: pd.DataFrame, rate: float, task, num_points:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

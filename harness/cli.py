@@ -13,6 +13,8 @@ import argparse
 import ast
 import dataclasses
 import inspect
+import os
+import sys
 import textwrap
 import typing
 
@@ -39,12 +41,41 @@ def undocumented_fields(args_class) -> list[str]:
     return [field.name for field in dataclasses.fields(args_class) if field.name not in docs]
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, ``error: ...``, and exit status 2."""
+
+    def error(self, message):
+        print(f"error: {message} (--help lists the flags)", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def run_command(main) -> None:
+    """A command's entry point: ``main()``, with bad input (a ValueError, such as an unknown name, an
+    impossible size, a corrupt results file or a failed Cholesky factorisation, or a missing file) answered by one
+    line, ``error: ...``, and exit status 2 instead of a traceback (``PIPPS_TRACEBACK=1`` shows it)."""
+    try:
+        main()
+    except (ValueError, FileNotFoundError) as error:
+        if os.environ.get("PIPPS_TRACEBACK"):
+            raise
+        print(f"error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def check_sizes(**sizes) -> None:
+    """Refuse impossible sizes before anything is computed: each NAME=(values, least) must be >= least."""
+    for name, (values, least) in sizes.items():
+        bad = [v for v in (values if isinstance(values, (list, tuple)) else [values]) if v < least]
+        if bad:
+            raise ValueError(f"{name} must be >= {least}; got {bad[0]}")
+
+
 def parse(args_class, argv=None):
     """Build ``args_class`` (a dataclass of str/int/float/bool fields with defaults and
     docstrings) from the command line; ``--help`` lists every flag with its meaning and default."""
     hints = typing.get_type_hints(args_class)
     docs = field_docs(args_class)
-    parser = argparse.ArgumentParser(description=(args_class.__doc__ or "").strip().splitlines()[0])
+    parser = OneLineParser(description=(args_class.__doc__ or "").strip().splitlines()[0])
     for field in dataclasses.fields(args_class):
         flag = "--" + field.name.replace("_", "-")
         kind = hints[field.name]
@@ -58,11 +89,19 @@ def parse(args_class, argv=None):
 
 
 def int_list(text: str) -> list[int]:
-    return [int(x) for x in text.split(",") if x]
+    """"10,30,100" -> [10, 30, 100]; a ValueError that quotes the text otherwise."""
+    try:
+        return [int(x) for x in text.split(",") if x]
+    except ValueError:
+        raise ValueError(f"expected comma-separated integers such as 10,30,100; got {text!r}") from None
 
 
 def float_list(text: str) -> list[float]:
-    return [float(x) for x in text.split(",") if x]
+    """"0,1.5" -> [0.0, 1.5]; a ValueError that quotes the text otherwise."""
+    try:
+        return [float(x) for x in text.split(",") if x]
+    except ValueError:
+        raise ValueError(f"expected comma-separated numbers such as 0,1.5; got {text!r}") from None
 
 
 def str_list(text: str) -> list[str]:

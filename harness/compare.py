@@ -40,7 +40,7 @@ import pandas as pd
 
 import estimators
 from harness import scenario as scenario_lib
-from harness.cli import int_list, parse, str_list
+from harness.cli import check_sizes, int_list, parse, run_command, str_list
 from harness.records import ResultTable
 from harness.variance import cell_statistics, repeated_estimates
 
@@ -74,6 +74,7 @@ class Args(scenario_lib.ExperimentArgs):
 
     def __post_init__(self):
         super().__post_init__()
+        check_sizes(particles=(int_list(self.particles), 2), reference_particles=(self.reference_particles, 2))
         for model in str_list(self.models) + [self.reference_model]:
             scenario_lib.check_model(model)
         if scenario_lib.MODELS[self.reference_model].learned:
@@ -337,4 +338,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

@@ -38,7 +38,7 @@ import estimators
 import tasks
 from estimators.base import draw_noise, per_particle, rollout, theta_dtype
 from harness import scenario as scenario_lib
-from harness.cli import float_list, parse, str_list
+from harness.cli import check_sizes, float_list, parse, run_command, str_list
 from harness.lyapunov import finite_time_exponents
 from harness.records import ResultTable
 
@@ -76,6 +76,7 @@ class Args(scenario_lib.ExperimentArgs):
     def __post_init__(self):
         super().__post_init__()
         scenario_lib.check_model(self.model)
+        check_sizes(particles=(self.particles, 2), slice_particles=(self.slice_particles, 1))
         if "pilco" in str_list(self.estimators):
             raise ValueError("the landscape projects each particle's gradient (Estimate.aux['particle_grads']), "
                              "which pilco's deterministic objective has not: leave pilco out of --estimators")
@@ -351,4 +352,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

@@ -44,7 +44,7 @@ import tasks
 from estimators.base import task_problem
 from estimators.pilco import check_task
 from harness import learn_report
-from harness.cli import parse, str_list
+from harness.cli import check_sizes, parse, run_command, str_list
 from harness.episodic import RunState, evaluate_policy, in_precision, learning_run, policy_optimiser
 from harness.methods import DEFAULT_METHODS, METHODS, method, runnable
 from harness.records import ResultTable, code_version, load_pickle, save_pickle
@@ -133,6 +133,9 @@ class Args:
             check_task(task)
         if self.repeats < 1 or self.batch < 1:
             raise ValueError("repeats and batch must be >= 1")
+        check_sizes(**{name: (getattr(self, name), least) for name, least in
+                       [("particles", 2), ("optimiser_steps", 1), ("eval_runs", 1), ("pilco_steps", 1), ("gp_steps", 1)]
+                       if getattr(self, name) != -1})
         if not 0 <= self.first_repeat < self.repeats:
             raise ValueError(f"first_repeat must be in 0..repeats-1, got {self.first_repeat}")
         if self.gp_inducing < 0:
@@ -293,4 +296,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

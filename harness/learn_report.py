@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from harness.cli import OneLineParser, run_command
 from harness.methods import INVALID as INVALID_METHODS
 from harness.methods import METHODS, PAPER_METHODS, PAPER_RATES, READINGS, paper_rate
 from harness.records import read_csv
@@ -600,7 +601,7 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m harness.learn_report",
         description="Success tables and learning curves from learning CSVs (harness.learn). Several CSVs (e.g. one "
                     "per k, for the claims across k) are pooled into one report, written to --out.")
@@ -615,7 +616,7 @@ def main(argv=None) -> None:
     rows = pd.concat([read_csv(path) for path in args.paths], ignore_index=True)
     mixed = rows.groupby(["method", "task_options"]).settings.nunique()
     if (mixed > 1).any():
-        raise SystemExit(f"{' '.join(args.paths)} hold several settings for {list(mixed[mixed > 1].index)}: a rate "
+        raise ValueError(f"{' '.join(args.paths)} hold several settings for {list(mixed[mixed > 1].index)}: a rate "
                          "mixes them; keep one settings value per method (e.g. filter the CSV) and rerun.")
     out = f" --out {args.out}" if args.out else ""
     write(rows, stem, f"python -m harness.learn_report {' '.join(args.paths)}{out}")
@@ -623,4 +624,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

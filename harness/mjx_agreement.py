@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 
 import tasks
-from harness.cli import float_list, parse
+from harness.cli import float_list, parse, run_command
 from harness.records import ResultTable
 
 KEY_COLUMNS = ["task", "control_fraction", "step", "states", "seed"]
@@ -176,4 +176,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

@@ -70,8 +70,13 @@ def code_version() -> str:
 
 
 def read_csv(path: str) -> pd.DataFrame:
-    """A results CSV, its ``TEXT_COLUMNS`` as text."""
-    return pd.read_csv(path, dtype=TEXT_COLUMNS)
+    """A results CSV, its ``TEXT_COLUMNS`` as text; a corrupt one raises a ValueError that names it and
+    what is wrong (the file is left as it is)."""
+    try:
+        return pd.read_csv(path, dtype=TEXT_COLUMNS)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path} is not a readable results CSV ({' '.join(str(error).split())}); it is left as it "
+                         "is: repair it, or move it away to start afresh") from None
 
 
 def save_pickle(obj: Any, path: str) -> None:

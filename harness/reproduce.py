@@ -47,7 +47,7 @@ from scipy import stats
 
 import tasks
 from harness import learn_report
-from harness.cli import parse, str_list
+from harness.cli import parse, run_command, str_list
 from harness.records import read_csv
 
 
@@ -333,4 +333,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

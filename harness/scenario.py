@@ -39,6 +39,7 @@ import estimators
 import tasks
 from estimators.base import Problem, draw_noise, per_particle, rollout, task_problem, theta_dtype
 from estimators.pilco import Pilco, check_task
+from harness.cli import check_sizes
 from harness.episodic import learning_run, policy_optimiser
 from harness.records import ROOT, load_pickle, save_pickle, source_digest
 from models import gp
@@ -238,6 +239,7 @@ class ExperimentArgs:
     def __post_init__(self):
         tasks.make(self.task)  # fails with the list of tasks
         check_estimators([self.scenario_estimator], self.task)
+        check_sizes(scenario_particles=(self.scenario_particles, 2), scenario_trials=(self.scenario_trials, 1))
 
     @property
     def scenario(self) -> ScenarioArgs:

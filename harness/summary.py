@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from harness.cli import parse
+from harness.cli import parse, run_command
 from harness.records import ROOT, read_csv
 
 CLAIMS_START = "<!-- claims table: written by python -m harness.summary; do not edit by hand -->"
@@ -200,4 +200,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

@@ -35,7 +35,7 @@ import tomllib
 
 import numpy as np
 
-from harness.cli import parse
+from harness.cli import parse, run_command
 
 ENGINES = ("local", "ray")
 PLAN_SCHEMA_VERSION = 1
@@ -317,4 +317,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

@@ -27,7 +27,7 @@ import pandas as pd
 
 import estimators
 from harness import scenario as scenario_lib
-from harness.cli import float_list, int_list, parse, str_list
+from harness.cli import check_sizes, float_list, int_list, parse, run_command, str_list
 from harness.records import ResultTable
 
 KEY_COLUMNS = ["task", "model", "estimator", "particles", "delta_theta", "repeats", "seed", "scenario"]
@@ -57,6 +57,7 @@ class Args(scenario_lib.ExperimentArgs):
         scenario_lib.check_estimators(str_list(self.estimators), self.task, [self.model])
         if self.repeats < 2:
             raise ValueError("repeats must be >= 2 to estimate a variance")
+        check_sizes(particles=(self.particle_counts, 2))
 
     @property
     def particle_counts(self) -> list[int]:
@@ -264,4 +265,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_command(main)

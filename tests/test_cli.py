@@ -37,3 +37,37 @@ def test_field_docs_reads_the_literal_after_each_field_and_inherits():
 
     assert field_docs(Child) == {"a": "The a.", "c": "The c."}
     assert undocumented_fields(Child) == ["b"]
+
+
+@pytest.mark.parametrize("module, argv, message", [
+    ("variance", ["--particles", "0"], "error: particles must be >= 2; got 0"),
+    ("variance", ["--particles", "abc"], "error: expected comma-separated integers such as 10,30,100; got 'abc'"),
+    ("variance", ["--task", "nope"], "error: unknown task 'nope'"),
+    ("learn", ["--methods", "nope"], "error: unknown methods ['nope']"),
+    ("learn", ["--particles", "abc"], "error: argument --particles: invalid int value: 'abc'"),
+    ("landscape", ["--particles", "1"], "error: particles must be >= 2; got 1"),
+])
+def test_bad_input_is_one_line_and_exit_status_2(module, argv, message, capsys):
+    from harness.cli import run_command
+
+    main = importlib.import_module(f"harness.{module}").main
+    with pytest.raises(SystemExit) as stopped:
+        run_command(lambda: main(argv))
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(message), err
+
+
+def test_a_corrupt_results_csv_is_named_and_left_untouched(tmp_path, capsys):
+    from harness import variance
+    from harness.cli import run_command
+
+    corrupt = tmp_path / "variance_cartpole_gp.csv"
+    corrupt.write_text('task,model\ncartpole,"gp\n')  # a quote never closed
+    before = corrupt.read_bytes()
+    with pytest.raises(SystemExit) as stopped:
+        run_command(lambda: variance.main(["--out", str(tmp_path)]))
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(corrupt) in err[0] and "not a readable results CSV" in err[0]
+    assert corrupt.read_bytes() == before
