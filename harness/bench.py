@@ -35,7 +35,7 @@ import estimators
 import tasks
 from estimators.base import task_problem
 from harness.cli import int_list, parse, run_command, str_list
-from harness import bench_learning
+from harness import bench_learning, keys
 from harness.episodic import add_episode
 from harness.methods import DEFAULT_METHODS
 from harness.records import code_version
@@ -99,10 +99,10 @@ def bench_problem(args: Args):
     data = model.empty_data(args.trials * task.horizon)
     key = jax.random.key(args.seed)
     for trial in range(args.trials):
-        data = add_episode(task, data, run_episode(task, jax.random.fold_in(key, trial)))
+        data = add_episode(task, data, run_episode(task, keys.stream(key, "random_trial", trial)))
     posterior = gp.fit(data, num_steps=args.gp_steps)
     policy = task.default_policy()
-    return task, task_problem(task, model, posterior, policy=policy), policy.init(jax.random.fold_in(key, 999)), int(
+    return task, task_problem(task, model, posterior, policy=policy), policy.init(keys.stream(key, "theta0")), int(
         data.num_valid)
 
 

@@ -37,6 +37,7 @@ import pandas as pd
 
 import tasks
 from estimators.base import task_problem
+from harness import keys
 from harness.episodic import add_episode, evaluate_policy, in_precision, policy_optimiser
 from harness.learn import PRESETS
 from harness.methods import METHODS, runnable
@@ -65,7 +66,7 @@ def buffers(task, key, num_trials: int):
     data = gp.GPModel(task).empty_data(16 * task.horizon)
     filled = []
     for trial in range(num_trials):
-        data = add_episode(task, data, run_episode(task, jax.random.fold_in(key, trial)))
+        data = add_episode(task, data, run_episode(task, keys.stream(key, "random_trial", trial)))
         filled.append(data)
     return filled
 
@@ -118,9 +119,9 @@ def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods
     trials = np.arange(1, settings["learned_trials"] + 1)
     problems = {form: task_problem(tasks.make("cartpole", rbf_parameterisation=form), gp.GPModel(task))
                 for form in ("direct", "pseudo_inputs")}
-    thetas = {form: problem.policy.init(jax.random.fold_in(key, 10_000)) for form, problem in problems.items()}
+    thetas = {form: problem.policy.init(keys.stream(key, "theta0")) for form, problem in problems.items()}
     eval_s = timed(lambda th, k: evaluate_policy(task, problems["direct"].policy, th, k, settings["eval_runs"]),
-                   thetas["direct"], jax.random.fold_in(key, 1))
+                   thetas["direct"], keys.stream(key, "evaluation"))
     runs = ([(m, "float64", jnp.float64, "direct", 0) for m in methods]
             + [(m, "float32", jnp.float32, "direct", 0) for m in float32_methods]
             + [(m, "float64", jnp.float64, "pseudo_inputs", 0) for m in pseudo_input_methods]

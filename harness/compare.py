@@ -39,6 +39,7 @@ from jax.flatten_util import ravel_pytree
 import pandas as pd
 
 import estimators
+from harness import keys
 from harness import scenario as scenario_lib
 from harness.cli import check_sizes, int_list, parse, run_command, str_list
 from harness.records import ResultTable
@@ -197,7 +198,7 @@ def run(args: Args) -> tuple[pd.DataFrame, Reference, dict[str, scenario_lib.Set
     seed_key = jax.random.key(args.seed)
     where = scenario_lib.settings(args, str_list(args.models))
     theta0, content = next(iter(where.values())).theta0, next(iter(where.values())).content
-    reference = reference_gradient(args, where, jax.random.fold_in(seed_key, 4))
+    reference = reference_gradient(args, where, keys.stream(seed_key, "reference"))
     cells = [(m, e, p) for m in str_list(args.models) for e in str_list(args.estimators)
              for p in int_list(args.particles)]
     for index, (model, name, num_particles) in enumerate(cells):
@@ -206,7 +207,7 @@ def run(args: Args) -> tuple[pd.DataFrame, Reference, dict[str, scenario_lib.Set
         if table.has(row_key):
             continue
         rep = repeated_estimates(estimators.make(name), where[model].problem, theta0, num_particles, args.repeats,
-                                 jax.random.fold_in(seed_key, 2))
+                                 keys.stream(seed_key, "estimates"))
         stats = {**cell_statistics(rep), **alignment(rep.grads, reference.grad)}
         table.append({**row_key, **stats, "scenario_settings": args.scenario_name})
         jax.clear_caches()  # no later cell reuses its programs (docs/extending.md: memory mappings)

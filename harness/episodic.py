@@ -20,6 +20,7 @@ import optax
 import estimators
 from estimators.base import Problem
 from estimators.pilco import pilco_objective
+from harness import keys
 from harness.optim import LEARNING_RATE, MOMENTUM, pipps_sgd
 from models import gp, sparse_gp
 from tasks.base import Task
@@ -202,9 +203,8 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
                  num_inducing: int = 0, optimisation_key_per_run: bool = False):
     """The paper's episodic loop: the task's random trials, then ``num_learned`` times: fit the
     GP to all data (``gp_steps`` L-BFGS steps), ``theta = optimise(problem with the GP, theta,
-    key).theta``, one real trial, add its data. Keys: random trial r ``fold_in(key, r)``, theta0
-    ``fold_in(key, 10_000)``, optimisation and trial t ``fold_in(key, 20_000 + t)`` and
-    ``fold_in(key, 30_000 + t)``. ``on_trial`` sees each trial as it ends. Returns
+    key).theta``, one real trial, add its data. Keys: the run's named streams (``harness.keys.RUN``:
+    random trial r, theta0, trial t's optimisation and its real trial). ``on_trial`` sees each trial as it ends. Returns
     (theta, data).
 
     ``batched``: ``key`` is (B,) seeds and every piece (GP fit, optimisation, trial) is vmapped
@@ -220,7 +220,7 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
     inducing inputs instead of the full GP (``models.sparse_gp.fitter``; 0: always the full GP).
 
     ``optimisation_key_per_run``: every trial's optimisation gets the same key
-    ``fold_in(key, 20_000)``: a fixed-noise estimator (RP_FS, GR_FS) then optimises on the same
+    the "optimisation" stream at index 0: a fixed-noise estimator (RP_FS, GR_FS) then optimises on the same
     particles in every trial of the run, the other reading of the paper's "fixed seed"
     (``harness.methods.Method.noise_fixed_per_run``); the default fixes them per trial.
 
@@ -229,7 +229,9 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
     computation as in an uninterrupted run.
     """
     over_seeds = jax.vmap if batched else (lambda f: f)
-    seeds_fold_in = jax.vmap(jax.random.fold_in, in_axes=(0, None)) if batched else jax.random.fold_in
+    def run_key(name: str, index: int = 0):  # the run's (or each seed's) key of a named stream
+        return (jax.vmap(keys.stream, in_axes=(0, None, None)) if batched else keys.stream)(key, name, index)
+
     num_seeds = key.shape if batched else ()
     if resume is None:
         data = problem.model.empty_data(data_capacity(task, task.num_random_trials + num_learned))
@@ -237,11 +239,11 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
     data, theta = jax.tree.map(jnp.asarray, (resume.data, resume.theta))  # it may hold numpy arrays
     add = over_seeds(functools.partial(add_episode, task))
     for trial in range(resume.trials_done, task.num_random_trials):
-        episode = over_seeds(functools.partial(run_episode, task))(seeds_fold_in(key, trial))
+        episode = over_seeds(functools.partial(run_episode, task))(run_key("random_trial", trial))
         data = add(data, episode)
         on_trial(TrialRecord(trial, False, episode, None), data)
     if theta is None:
-        theta = over_seeds(problem.policy.init)(seeds_fold_in(key, 10_000))
+        theta = over_seeds(problem.policy.init)(run_key("theta0"))
     policy_episode = over_seeds(lambda k, th: run_episode(task, k, problem.policy, th))
     for trial in range(max(resume.trials_done - task.num_random_trials, 0), num_learned):
         rows_held = int(np.max(np.asarray(data.num_valid)))
@@ -250,10 +252,10 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
             whole_episodes = -(-rows_held // task.horizon) * task.horizon
             posterior = gp.truncate(posterior, whole_episodes)
         problem = dataclasses.replace(problem, model_params=posterior)
-        optimisation_key = seeds_fold_in(key, 20_000 + (0 if optimisation_key_per_run else trial))
+        optimisation_key = run_key("optimisation", 0 if optimisation_key_per_run else trial)
         result = over_seeds(optimise)(problem, theta, optimisation_key)
         theta = result.theta
-        episode = policy_episode(seeds_fold_in(key, 30_000 + trial), theta)
+        episode = policy_episode(run_key("trial", trial), theta)
         data = add(data, episode)
         on_trial(TrialRecord(task.num_random_trials + trial, True, episode, theta, result.nonfinite_steps), data)
     return theta, data

@@ -37,6 +37,7 @@ import pandas as pd
 import estimators
 import tasks
 from estimators.base import draw_noise, per_particle, rollout, theta_dtype
+from harness import keys
 from harness import scenario as scenario_lib
 from harness.cli import check_sizes, float_list, parse, run_command, str_list
 from harness.lyapunov import finite_time_exponents
@@ -178,8 +179,8 @@ def run(args: Args) -> tuple[pd.DataFrame, dict, scenario_lib.Setting]:
     rows, the slices {delta: value_slice(...)} and the Setting."""
     table = ResultTable(args.stem + ".csv", KEY_COLUMNS)
     where = scenario_lib.setting(args, args.model)
-    key = jax.random.fold_in(jax.random.key(args.seed), 3)
-    slice_key = jax.random.fold_in(jax.random.key(args.seed), 6)  # the value slices', apart from the rows'
+    key = keys.stream(jax.random.key(args.seed), "landscape")
+    slice_key = keys.stream(jax.random.key(args.seed), "slices")  # apart from the rows'
     jitted = {name: jax.jit(estimators.make(name), static_argnums=3) for name in str_list(args.estimators)}
     jitted["returns"] = jax.jit(scenario_lib.particle_returns, static_argnums=3)
     for name in str_list(args.estimators):  # traced for shapes only: nothing computed

@@ -46,6 +46,7 @@ from estimators.pilco import check_task
 from harness import learn_report
 from harness.cli import check_sizes, parse, run_command, str_list
 from harness.episodic import RunState, evaluate_policy, in_precision, learning_run, policy_optimiser
+from harness.keys import stream
 from harness.methods import DEFAULT_METHODS, METHODS, method, runnable
 from harness.records import ResultTable, code_version, load_pickle, save_pickle
 from models import gp
@@ -200,7 +201,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     if args.float32_rollouts(method):
         optimise = in_precision(optimise, jnp.float32)
     problem = task_problem(task, gp.GPModel(task), **chosen.overrides)
-    keys = jnp.stack([jax.random.key(args.seed + r) for r in repeats])
+    run_keys = jnp.stack([jax.random.key(args.seed + r) for r in repeats])
     evaluate = jax.vmap(lambda th, k: evaluate_policy(task, problem.policy, th, k, num_runs=settings["eval_runs"]))
     num_trials = task.num_random_trials + settings["learned_trials"]
     checkpoint = checkpoint_path(args, method, repeats)
@@ -218,7 +219,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
 
     def on_trial(record, data):
         if record.learned:
-            eval_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(keys, 40_000 + record.trial)
+            eval_keys = jax.vmap(stream, in_axes=(0, None, None))(run_keys, "evaluation", record.trial)
             scores = np.asarray(evaluate(record.theta, eval_keys))  # (repeats, eval_runs)
         else:
             scores = np.full((len(repeats), 1), np.nan)
@@ -239,7 +240,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
         print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: trial {record.trial + 1}/{num_trials},"
               f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s)", file=sys.stderr, flush=True)
 
-    learning_run(task, problem, keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
+    learning_run(task, problem, run_keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
                  batched=True, trim_model=True, resume=resume, num_inducing=args.gp_inducing,
                  optimisation_key_per_run=chosen.noise_fixed_per_run)
     return rows

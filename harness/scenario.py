@@ -39,6 +39,7 @@ import estimators
 import tasks
 from estimators.base import Problem, draw_noise, per_particle, rollout, task_problem, theta_dtype
 from estimators.pilco import Pilco, check_task
+from harness import keys
 from harness.cli import check_sizes
 from harness.episodic import learning_run, policy_optimiser
 from harness.records import ROOT, load_pickle, save_pickle, source_digest
@@ -114,8 +115,8 @@ def build(args: ScenarioArgs) -> Scenario:
                   flush=True)
 
     problem = task_problem(task, gp.GPModel(task))
-    theta, data = learning_run(task, problem, jax.random.key(args.seed), args.learned_trials, optimise, args.gp_steps,
-                               on_trial)
+    run_key = keys.stream(jax.random.key(args.seed), "scenario_run")
+    theta, data = learning_run(task, problem, run_key, args.learned_trials, optimise, args.gp_steps, on_trial)
     posterior = gp.fit(data, num_steps=args.gp_steps)
     return Scenario(data, posterior, theta, np.asarray(returns))
 
@@ -302,7 +303,7 @@ def objective_line(where: Setting, model: str, seed: int) -> str:
     cost is at most 1 per step). Issue 20's criterion for a scenario that swings up: J at
     theta0 between 10 and 25 of 30 on the cart-pole's GP."""
     returns = jax.jit(particle_returns, static_argnums=3)
-    key = jax.random.fold_in(jax.random.key(seed), 5)
+    key = keys.stream(jax.random.key(seed), "objective")
     parts = []
     for delta in OBJECTIVE_DELTAS:
         r = np.asarray(returns(where.problem, where.theta(delta), key, OBJECTIVE_PARTICLES))
@@ -367,7 +368,7 @@ def settings(args: ExperimentArgs, models: list[str]) -> dict[str, Setting]:
     ``args.out``) of the scenario."""
     scn, source = load_or_build(args.scenario, os.path.join(args.out, ".cache"), args.scenarios_dir,
                                 args.rebuild_scenario, args.pin_scenario)
-    direction = unit_direction(scn.theta, jax.random.fold_in(jax.random.key(args.seed), 1))
+    direction = unit_direction(scn.theta, keys.stream(jax.random.key(args.seed), "direction"))
     content = content_hash(scn.theta, direction, scn.posterior)
     return {model: Setting(model_problem(args.task, model, scn), scn.theta, direction, scn, content, source)
             for model in models}

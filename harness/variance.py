@@ -26,6 +26,7 @@ import numpy as np
 import pandas as pd
 
 import estimators
+from harness import keys
 from harness import scenario as scenario_lib
 from harness.cli import check_sizes, float_list, int_list, parse, run_command, str_list
 from harness.records import ResultTable
@@ -141,7 +142,7 @@ def run(args: Args) -> tuple[pd.DataFrame, scenario_lib.Setting]:
     """Measure every missing cell (appending to the CSV); returns this run's table and its Setting."""
     table = ResultTable(os.path.join(args.out, f"variance_{args.task}_{args.model}.csv"), KEY_COLUMNS)
     where = scenario_lib.setting(args, args.model)
-    key = jax.random.fold_in(jax.random.key(args.seed), 2)
+    key = keys.stream(jax.random.key(args.seed), "estimates")
     cells = [(d, name, p) for d in float_list(args.delta_theta) for name in str_list(args.estimators)
              for p in args.particle_counts]
     for index, (delta, name, num_particles) in enumerate(cells):
