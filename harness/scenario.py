@@ -42,7 +42,7 @@ from estimators.pilco import Pilco, check_task
 from harness import keys
 from harness.cli import check_sizes
 from harness.episodic import learning_run, policy_optimiser
-from harness.records import ROOT, load_pickle, save_pickle, source_digest
+from harness.records import ROOT, source_digest
 from models import gp
 from models.simulator import SimulatorModel
 from tasks.base import Task
@@ -135,8 +135,58 @@ PINNED_DIR = os.path.join(ROOT, "scenarios")
 """The repository's pinned scenarios (see the module docstring)."""
 
 
+SCENARIO_SCHEMA_VERSION = 1
+"""Version of the scenario files' layout (``save_scenario``)."""
+
+
+def save_scenario(saved: dict, path: str) -> None:
+    """Write ``saved`` (``scenario``: a Scenario, ``provenance``: a dict) as plain data: ``PATH.npz`` (the
+    arrays: ``data.*`` and ``posterior.*`` by field, ``theta.I`` the I-th leaf of theta0, ``returns``) and
+    ``PATH.json`` (schema version, the task, theta0's tree structure and the provenance), each atomically."""
+    scn = jax.device_get(saved["scenario"])
+    arrays = {f"data.{k}": np.asarray(v) for k, v in scn.data._asdict().items()}
+    arrays |= {f"posterior.{k}": np.asarray(v) for k, v in scn.posterior._asdict().items()}
+    arrays |= {f"theta.{i}": np.asarray(leaf) for i, leaf in enumerate(jax.tree.leaves(scn.theta))}
+    arrays["returns"] = np.asarray(scn.returns)
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    with open(path + ".npz.tmp", "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(path + ".npz.tmp", path + ".npz")
+    meta = dict(schema_version=SCENARIO_SCHEMA_VERSION, theta_structure=str(jax.tree.structure(scn.theta)),
+                provenance=saved["provenance"], **saved.get("meta", {}))
+    with open(path + ".json.tmp", "w") as f:
+        json.dump(meta, f, indent=1, sort_keys=True)
+    os.replace(path + ".json.tmp", path + ".json")
+
+
+def load_scenario(path: str, task: str) -> dict | None:
+    """What ``save_scenario`` wrote at ``path`` (a dict with ``scenario`` and ``provenance``, and the JSON's
+    other entries under ``meta``), or None if there is nothing; theta0's tree comes from the task's
+    default policy, and a file that does not fit it, or of another schema version, is named."""
+    if not (os.path.exists(path + ".npz") and os.path.exists(path + ".json")):
+        return None
+    with open(path + ".json") as f:
+        meta = json.load(f)
+    if meta.get("schema_version") != SCENARIO_SCHEMA_VERSION:
+        raise ValueError(f"{path}.json: scenario schema_version {meta.get('schema_version')!r}, this code reads "
+                         f"{SCENARIO_SCHEMA_VERSION}")
+    with np.load(path + ".npz") as f:
+        arrays = dict(f)
+    template = jax.eval_shape(tasks.make(task).default_policy().init, jax.random.key(0))
+    if str(jax.tree.structure(template)) != meta["theta_structure"]:
+        raise ValueError(f"{path}: theta0 is a {meta['theta_structure']}, task {task!r}'s policy takes a "
+                         f"{jax.tree.structure(template)}")
+    theta = jax.tree.unflatten(jax.tree.structure(template),
+                               [arrays[f"theta.{i}"] for i in range(len(jax.tree.leaves(template)))])
+    scenario = Scenario(gp.GPData(**{k: arrays[f"data.{k}"] for k in gp.GPData._fields}),
+                        gp.GPPosterior(**{k: arrays[f"posterior.{k}"] for k in gp.GPPosterior._fields}),
+                        theta, arrays["returns"])
+    return dict(scenario=scenario, provenance=meta["provenance"],
+                meta={k: v for k, v in meta.items() if k not in ("provenance", "schema_version", "theta_structure")})
+
+
 def settings_file(args: ScenarioArgs, folder: str, with_code: bool) -> str:
-    """``folder/scenario_{task}_{hash}.pkl``, the hash of ``args``, the precision, every option of
+    """``folder/scenario_{task}_{hash}`` (``.npz`` and ``.json``: ``save_scenario``), the hash of ``args``, the precision, every option of
     the task (``tasks.describe``: a change of a task's default, e.g. its cost, makes a new one)
     and, ``with_code``, the code that builds it (``code_digest``)."""
     settings = {**dataclasses.asdict(args), "x64": jax.config.jax_enable_x64,
@@ -144,7 +194,7 @@ def settings_file(args: ScenarioArgs, folder: str, with_code: bool) -> str:
     if with_code:
         settings["code"] = code_digest()
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:12]
-    return os.path.join(folder, f"scenario_{args.task}_{digest}.pkl")
+    return os.path.join(folder, f"scenario_{args.task}_{digest}")
 
 
 def cache_path(args: ScenarioArgs, cache_dir: str) -> str:
@@ -178,22 +228,22 @@ def load_or_build(args: ScenarioArgs, cache_dir: str, pinned_dir: str = PINNED_D
     the pinned file (replacing one there). Says on stderr which it used, and returns it with
     where it came from, as a phrase for reports."""
     pinned = pinned_path(args, pinned_dir)
-    shown = os.path.relpath(pinned, ROOT) if pinned.startswith(ROOT + os.sep) else pinned
-    saved = None if rebuild else load_pickle(pinned)
+    shown = (os.path.relpath(pinned, ROOT) if pinned.startswith(ROOT + os.sep) else pinned) + ".{npz,json}"
+    saved = None if rebuild else load_scenario(pinned, args.task)
     if saved is not None:
-        print(f"scenario: the pinned {pinned} ({describe_provenance(saved)}); --rebuild-scenario builds one "
+        print(f"scenario: the pinned {pinned}.{{npz,json}} ({describe_provenance(saved)}); --rebuild-scenario builds one "
               "under the current code", file=sys.stderr, flush=True)
         source = f"the pinned {shown}, {describe_provenance(saved)}"
     else:
         path = cache_path(args, cache_dir)
-        saved = load_pickle(path)
+        saved = load_scenario(path, args.task)
         if saved is None:
             saved = dict(scenario=build(args), provenance=provenance())
-            save_pickle(saved, path)
+            save_scenario(saved, path)
         source = "built under the current code, not pinned"
         if pin:
-            save_pickle(saved, pinned)
-            print(f"scenario: pinned to {pinned} ({describe_provenance(saved)})", file=sys.stderr, flush=True)
+            save_scenario(saved, pinned)
+            print(f"scenario: pinned to {pinned}.{{npz,json}} ({describe_provenance(saved)})", file=sys.stderr, flush=True)
             source = f"built under the current code and pinned to {shown}, {describe_provenance(saved)}"
     return jax.tree.map(jax.numpy.asarray, saved["scenario"]), source
 

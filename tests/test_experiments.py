@@ -63,16 +63,17 @@ def test_variance_runs_end_to_end_and_resumes(tmp_path, capsys):
 def test_rows_of_a_changed_theta0_are_never_reused(tmp_path, capsys):
     """The cached scenario's theta0 moved by 1e-3 (same settings, so the same cache file):
     every cell is computed again, under a new content hash, beside the old rows."""
-    from harness.records import load_pickle, save_pickle
+    from harness.scenario import load_scenario, save_scenario
 
     out = str(tmp_path)
     argv = TINY + ["--estimators", "rp", "--particles", "5", "--delta-theta", "0", "--out", out]
     variance.main(argv)
-    [cached] = (tmp_path / ".cache").glob("scenario_cartpole_*.pkl")
-    saved = load_pickle(str(cached))
+    [cached] = (tmp_path / ".cache").glob("scenario_cartpole_*.json")
+    stem = str(cached)[:-len(".json")]
+    saved = load_scenario(stem, "cartpole")
     scenario = saved["scenario"]
-    save_pickle({**saved, "scenario": scenario._replace(theta=jax.tree.map(lambda t: t + 1e-3, scenario.theta))},
-                str(cached))
+    save_scenario({**saved, "scenario": scenario._replace(theta=jax.tree.map(lambda t: t + 1e-3, scenario.theta))},
+                  stem)
     capsys.readouterr()
     variance.main(argv)
     assert "computed 1 cells, reused 0" in capsys.readouterr().err
@@ -84,22 +85,22 @@ def test_a_pinned_scenario_is_used_whatever_the_code_and_rebuild_ignores_it(tmp_
     """Pinned once, the scenario is reused after a code change (every cell found done, no
     build); --rebuild-scenario builds under the current code instead."""
     from harness import scenario as scenario_lib
-    from harness.records import load_pickle
 
     out, pinned = str(tmp_path / "out"), str(tmp_path / "pinned")
     argv = TINY + ["--estimators", "rp", "--particles", "5", "--delta-theta", "0", "--out", out,
                    "--scenarios-dir", pinned]
     variance.main(argv + ["--pin-scenario"])
-    [pinned_file] = (tmp_path / "pinned").glob("scenario_cartpole_*.pkl")
+    [pinned_file] = (tmp_path / "pinned").glob("scenario_cartpole_*.json")
+    stem = str(pinned_file)[:-len(".json")]
     report = open(os.path.join(out, "variance_cartpole_gp.md")).read()
-    assert f"built under the current code and pinned to {pinned_file}" in report
-    assert "code" in load_pickle(str(pinned_file))["provenance"]
+    assert f"built under the current code and pinned to {stem}.{{npz,json}}" in report
+    assert "code" in scenario_lib.load_scenario(stem, "cartpole")["provenance"]
     monkeypatch.setattr(scenario_lib, "code_digest", lambda: "changed-code")  # a new cache key
     capsys.readouterr()
     variance.main(argv)
     err = capsys.readouterr().err
     assert "the pinned" in err and "computed 0 cells, reused 1" in err and "scenario: trial" not in err
-    assert f"the pinned {pinned_file}" in open(os.path.join(out, "variance_cartpole_gp.md")).read()
+    assert f"the pinned {stem}.{{npz,json}}" in open(os.path.join(out, "variance_cartpole_gp.md")).read()
     variance.main(argv + ["--rebuild-scenario"])  # the code changed: no cached build under it
     err = capsys.readouterr().err
     assert "the pinned" not in err and "scenario: trial 1 done" in err
@@ -530,3 +531,25 @@ def test_scenario_can_be_learned_with_pilco():
     start = tasks.make("cartpole").default_policy().init(jax.random.fold_in(jax.random.key(0), 10_000))
     moved = [not np.allclose(a, b) for a, b in zip(jax.tree.leaves(built.theta), jax.tree.leaves(start))]
     assert any(moved)  # the policy was optimised
+
+
+def test_every_pinned_scenario_loads_from_arrays_and_json_and_reproduces_its_content_hash():
+    """The pinned scenarios are plain data (``.npz`` + ``.json`` with a schema version, no pickle); each
+    loads, and its content hash at seed 0 (theta0, the direction, the GP) is the one its JSON records,
+    which is the ``scenario`` of the committed report rows made at it."""
+    from harness import keys
+    from harness import scenario as scenario_lib
+    from harness.records import ROOT
+
+    folder = os.path.join(ROOT, "scenarios")
+    assert not [name for name in os.listdir(folder) if name.endswith(".pkl")]
+    stems = sorted(os.path.join(folder, name[:-len(".json")]) for name in os.listdir(folder) if name.endswith(".json"))
+    assert len(stems) == 2
+    for stem in stems:
+        task = os.path.basename(stem).split("_")[1]
+        saved = scenario_lib.load_scenario(stem, task)
+        scn = saved["scenario"]
+        direction = scenario_lib.unit_direction(scn.theta, keys.stream(jax.random.key(0), "direction"))
+        assert scenario_lib.content_hash(scn.theta, direction, scn.posterior) == saved["meta"]["content_hash_seed0"]
+        rows = pd.read_csv(os.path.join(ROOT, "reports", f"variance_{task}_gp.csv"), dtype={"scenario": str})
+        assert saved["meta"]["content_hash_seed0"] in set(rows.scenario)
