@@ -434,10 +434,24 @@ def claim_rp_fs_worst(cell: pd.DataFrame) -> str:
             f"{rate_text(cell.loc[lowest])}: " + verdict(comparisons, "two-sided Fisher exact"))
 
 
+def claim_beats(cell: pd.DataFrame, winners: tuple[str, ...], losers: tuple[str, ...]) -> str:
+    """Each method of ``winners`` has a higher rate than each of ``losers`` in one (task, cost, k, options) cell
+    of ``success_rows``: a verdict over every pair present (two-sided Fisher exact)."""
+    cell = cell.set_index("method", drop=False)
+    if absent := missing(cell.index, list(winners) + list(losers)):
+        return absent
+    listed = ", ".join(rate_text(cell.loc[m]) for m in winners + losers)
+    comparisons = {f"{a.upper()} vs {b.upper()}": (fisher_p(cell.loc[a], cell.loc[b]),
+                                                    cell.loc[a].rate > cell.loc[b].rate)
+                   for a in winners for b in losers}
+    return f"{listed}: " + verdict(comparisons, "two-sided Fisher exact")
+
+
 def ordering_lines(success: pd.DataFrame) -> list[str]:
     """The paper's orderings evaluated from ``success_rows``, a line each per (task, cost, task options)
     and, for (c), per k: (a) TP >= PILCO at k = 1, (b) LR and TP degrade least as k grows, (c) RP_FS
-    is the worst method."""
+    is the worst method; where the cell is present, (d) TP+sigma_n above TP at k = 0.01 (angle cost)
+    and, with the tip cost at k = 1, PILCO and GR above the particle methods TP and LR."""
     lines = []
     for (task, cost, options), group in success.groupby(["task", "cost", "options"]):
         name = f"{task}, {cost}{options}"
@@ -445,6 +459,12 @@ def ordering_lines(success: pd.DataFrame) -> list[str]:
                   f"- (b) LR and TP degrade least as k grows ({name}): {claim_lr_tp_degrade_least(group)}."]
         lines += [f"- (c) RP_FS is the worst method ({name}, k = {k:g}): {claim_rp_fs_worst(cell)}."
                   for k, cell in group.groupby("k")]
+        if cost == "angle" and (group.k == 0.01).any():
+            lines.append(f"- (d) TP+sigma_n above TP at k = 0.01 ({name}): "
+                         f"{claim_beats(group[group.k == 0.01], ('tp+sigma_n',), ('tp',))}.")
+        if cost == "tip" and (group.k == 1.0).any():
+            lines.append(f"- Tip cost: PILCO and GR above TP and LR at k = 1 ({name}): "
+                         f"{claim_beats(group[group.k == 1.0], ('pilco', 'gr'), ('tp', 'lr'))}.")
     return lines
 
 
@@ -546,6 +566,34 @@ def curve_order(frame: pd.DataFrame) -> list[str]:
     return list(first.assign(rank=first.label.map(rank)).sort_values(["rank", "noise_k"]).curve)
 
 
+def rate_figure(success: pd.DataFrame, path: str) -> None:
+    """Success rate against k per method label (one panel per task and cost), with Wilson 95 % intervals as
+    bars and the paper's rates as crosses; ``success``: ``success_rows``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = list(success.groupby(["task", "cost"]))
+    fig, axes = plt.subplots(1, len(groups), figsize=(6.5 * len(groups), 4.5), squeeze=False)
+    for ax, ((task, cost), group) in zip(axes[0], groups):
+        for index, label in enumerate(column_order(group.label.unique())):
+            line = group[group.label == label].sort_values("k")
+            ax.errorbar(line.k, line.rate, yerr=[line.rate - line.low, line.high - line.rate], marker="o",
+                        color=f"C{index % 10}", capsize=3, label=label)
+            ax.plot(line.k, line.paper, "x", color=f"C{index % 10}", markersize=8)
+        ax.set_xscale("log")
+        ax.set_xlabel("observation-noise multiplier k")
+        ax.set_ylabel("success rate (x: the paper's)")
+        ax.set_title(f"{task}, {cost} cost")
+        ax.set_ylim(-0.05, 1.05)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def write(rows: pd.DataFrame, stem: str, command: str) -> None:
     """``stem.md`` (thresholds, success tables, threshold robustness, the paper's orderings, compute
     time, per-method final costs) and ``stem.png``
@@ -557,6 +605,8 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
 
     table, thresholds = success_table(rows)
     several_k = rows.noise_k.nunique() > 1
+    if several_k:
+        rate_figure(success_rows(rows), stem + "_rates.png")
     final = with_curve_labels(final_evaluations(rows), several_k)
     learned = with_curve_labels(with_labels(rows[rows.learned.astype(bool)]), several_k)
     curves = curve_order(learned)
@@ -587,6 +637,7 @@ def write(rows: pd.DataFrame, stem: str, command: str) -> None:
              *invalid_lines(final),
              "", *paper_comparison_lines(rows, thresholds), "", *compute_lines(rows),
              "", f"![learning curves]({os.path.basename(stem)}.png)", "",
+             *([f"![success rate against k]({os.path.basename(stem)}_rates.png)", ""] if several_k else []),
              f"Mean evaluation cost after each learned trial (mean over repeats, per {per}):", "",
              learned.pivot_table(index="trial", columns="curve", values="eval_mean", aggfunc="mean")[
                  curves].to_markdown(floatfmt=".2f"), "",

@@ -234,6 +234,7 @@ def test_a_report_over_several_csvs_keeps_each_k_apart(tmp_path):
                  f"| tp [k=16] | s          | {mean_high:.3f} |"]:
         assert text in report, text
     assert (tmp_path / "pooled.png").exists()
+    assert "![success rate against k](pooled_rates.png)" in report and (tmp_path / "pooled_rates.png").exists()
 
 
 def test_the_final_evaluation_is_the_last_trials_row_of_each_complete_experiment():
@@ -283,3 +284,20 @@ def test_nonfinite_steps_are_flagged_with_the_float32_cause_only_under_float32_r
     assert "rp" in float64_lines[2] and learn_report.FLOAT32_NONFINITE_CAUSE not in float64_lines
     learned["settings"] = "particles300-rollout_f32"
     assert learn_report.nonfinite_lines(learned)[-1] == learn_report.FLOAT32_NONFINITE_CAUSE
+
+
+def test_claim_d_and_the_tip_cost_claim():
+    """(d) TP+sigma_n above TP at k = 0.01, and with the tip cost PILCO and GR above TP and LR: one verdict
+    over the pairs (Fisher exact); each line only where its cell is in the table."""
+    lines = orderings({**wins("tp+sigma_n", 9, k=0.01), **wins("tp", 5, k=0.01)})
+    [d] = [line for line in lines if line.startswith("- (d)")]
+    assert d.startswith("- (d) TP+sigma_n above TP at k = 0.01 (cartpole, angle): TP+SIGMA_N 0.90 [0.60, 0.98] n=10, "
+                        "TP 0.50 [0.24, 0.76] n=10: holds on the point estimates; not significant at 0.05, so undecided")
+    assert [line for line in orderings(wins("tp", 5, k=0.01)) if line.startswith("- (d)")] == [
+        "- (d) TP+sigma_n above TP at k = 0.01 (cartpole, angle): not measured (no TP+SIGMA_N rows)."]
+    assert not [line for line in orderings(wins("tp", 5)) if line.startswith("- (d)")]  # no k = 0.01 cell
+    tip = rows_of({**wins("pilco", 9), **wins("gr", 8), **wins("tp", 2), **wins("lr", 1)})
+    tip = tip.assign(cost="tip", task_options=tip.task_options.str.replace("cost_type=angle", "cost_type=tip"))
+    [line] = [line for line in learn_report.ordering_lines(learn_report.success_rows(tip))
+              if line.startswith("- Tip cost")]
+    assert "holds on the point estimates; significant at 0.05" in line and line.endswith("the largest of 4: GR vs TP).")
