@@ -248,6 +248,13 @@ def load_or_build(args: ScenarioArgs, cache_dir: str, pinned_dir: str = PINNED_D
     return jax.tree.map(jax.numpy.asarray, saved["scenario"]), source
 
 
+TASK_SCENARIOS = {
+    "cartpole": dict(scenario_trials=4, scenario_steps=150, scenario_particles=100, scenario_estimator="pilco"),
+    "unicycle": dict(scenario_trials=2, scenario_steps=200, scenario_particles=100, scenario_estimator="tp"),
+}
+"""Each task's default scenario: the settings of its pinned one in scenarios/, so that every task's default
+gradient experiment loads it instead of building one (a task without an entry takes the cart-pole's)."""
+
 FLAT_SCENARIO_FLAGS = "--scenario-estimator tp --scenario-trials 2 --scenario-steps 200 --scenario-particles 100"
 """The flags of the scenario before issue 20 (a flat plateau: the policy never swings up)."""
 
@@ -256,7 +263,8 @@ FLAT_SCENARIO_FLAGS = "--scenario-estimator tp --scenario-trials 2 --scenario-st
 class ExperimentArgs:
     """The options every gradient experiment shares (their CLIs extend this dataclass).
 
-    The default scenario (issue 20) is PILCO after 4 learned trials, a policy that has begun to
+    The default scenario is the task's pinned one (``TASK_SCENARIOS``); the cart-pole's (issue 20) is PILCO
+    after 4 learned trials, a policy that has begun to
     swing the pole up (the criterion: J at theta0 between 10 and 25 of 30 on the cart-pole's GP;
     every report prints J at theta0 and at delta theta = 1.5). The earlier one, TP after 2
     learned trials with 100 particles and 200 steps, where every particle hangs down (J about
@@ -270,14 +278,17 @@ class ExperimentArgs:
     """Folder for the CSV, markdown and figure (and .cache/ for scenarios)."""
     x64: bool = True
     """Compute in float64 (--no-x64: float32)."""
-    scenario_trials: int = 4
-    """Learned trials that build the scenario's theta0 and GP."""
-    scenario_steps: int = 150
-    """Optimiser steps per scenario trial (L-BFGS steps for pilco)."""
-    scenario_particles: int = 100
-    """Particles per gradient estimate while building the scenario (particle estimators only)."""
-    scenario_estimator: str = "pilco"
-    """Estimator (or pilco) that optimises the policy while building the scenario."""
+    scenario_trials: int = 0
+    """Learned trials that build the scenario's theta0 and GP (0: the task's pinned scenario's,
+    harness.scenario.TASK_SCENARIOS)."""
+    scenario_steps: int = 0
+    """Optimiser steps per scenario trial, L-BFGS steps for pilco (0: the task's pinned scenario's)."""
+    scenario_particles: int = 0
+    """Particles per gradient estimate while building the scenario, particle estimators only (0: the task's
+    pinned scenario's)."""
+    scenario_estimator: str = ""
+    """Estimator (or pilco) that optimises the policy while building the scenario (empty: the task's pinned
+    scenario's)."""
     rebuild_scenario: bool = False
     """Build the scenario under the current code (cached under out/.cache) instead of using the
     pinned one in scenarios/."""
@@ -289,6 +300,9 @@ class ExperimentArgs:
 
     def __post_init__(self):
         tasks.make(self.task)  # fails with the list of tasks
+        for name, value in TASK_SCENARIOS.get(self.task, TASK_SCENARIOS["cartpole"]).items():
+            if not getattr(self, name):  # unset: the task's pinned scenario's setting
+                object.__setattr__(self, name, value)
         check_estimators([self.scenario_estimator], self.task)
         check_sizes(scenario_particles=(self.scenario_particles, 2), scenario_trials=(self.scenario_trials, 1))
 
