@@ -16,6 +16,7 @@ import inspect
 import os
 import sys
 import textwrap
+import time
 import typing
 
 
@@ -60,6 +61,20 @@ def run_command(main) -> None:
             raise
         print(f"error: {error}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+class Progress:
+    """Progress lines with the time left: ``[i/n] TEXT (about M min left)``, M from the mean time of the items
+    this process has computed so far (reused items cost nothing and are not counted)."""
+
+    def __init__(self, total: int):
+        self.total, self.started, self.computed = total, time.perf_counter(), 0
+
+    def line(self, index: int, text: str) -> str:
+        """The line after item ``index`` (0-based) was computed."""
+        self.computed += 1
+        left = (time.perf_counter() - self.started) / self.computed * (self.total - index - 1)
+        return f"[{index + 1}/{self.total}] {text} (about {left / 60:.1f} min left)"
 
 
 def check_sizes(**sizes) -> None:

@@ -41,7 +41,7 @@ import pandas as pd
 import estimators
 from harness import keys
 from harness import scenario as scenario_lib
-from harness.cli import check_sizes, int_list, parse, run_command, str_list
+from harness.cli import Progress, check_sizes, int_list, parse, run_command, str_list
 from harness.records import ResultTable
 from harness.variance import cell_statistics, repeated_estimates
 
@@ -201,6 +201,7 @@ def run(args: Args) -> tuple[pd.DataFrame, Reference, dict[str, scenario_lib.Set
     reference = reference_gradient(args, where, keys.stream(seed_key, "reference"))
     cells = [(m, e, p) for m in str_list(args.models) for e in str_list(args.estimators)
              for p in int_list(args.particles)]
+    progress = Progress(len(cells))
     for index, (model, name, num_particles) in enumerate(cells):
         row_key = dict(task=args.task, model=model, estimator=name, particles=num_particles, repeats=args.repeats,
                        seed=args.seed, scenario=content, reference=args.reference_name)
@@ -211,9 +212,9 @@ def run(args: Args) -> tuple[pd.DataFrame, Reference, dict[str, scenario_lib.Set
         stats = {**cell_statistics(rep), **alignment(rep.grads, reference.grad)}
         table.append({**row_key, **stats, "scenario_settings": args.scenario_name})
         jax.clear_caches()  # no later cell reuses its programs (docs/extending.md: memory mappings)
-        print(f"[{index + 1}/{len(cells)}] {model:3s} {name:7s} P={num_particles:5d}: variance {stats['variance']:.3e}, "
-              f"cosine {stats['cosine']:.3f} +- {stats['cosine_ci']:.3f}, rel. error {stats['rel_error']:.3g}",
-              file=sys.stderr, flush=True)
+        print(progress.line(index, f"{model:3s} {name:7s} P={num_particles:5d}: variance {stats['variance']:.3e}, "
+                                   f"cosine {stats['cosine']:.3f} +- {stats['cosine_ci']:.3f}, rel. error "
+                                   f"{stats['rel_error']:.3g}"), file=sys.stderr, flush=True)
     print(f"compare: scenario {content}: {table.summary()}", file=sys.stderr, flush=True)
     rows = table.read()
     keep = (rows.seed == args.seed) & (rows.repeats == args.repeats) & (rows.scenario == content) & (

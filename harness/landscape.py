@@ -39,7 +39,7 @@ import tasks
 from estimators.base import draw_noise, per_particle, rollout, theta_dtype
 from harness import keys
 from harness import scenario as scenario_lib
-from harness.cli import check_sizes, float_list, parse, run_command, str_list
+from harness.cli import Progress, check_sizes, float_list, parse, run_command, str_list
 from harness.lyapunov import finite_time_exponents
 from harness.records import ResultTable
 
@@ -187,6 +187,7 @@ def run(args: Args) -> tuple[pd.DataFrame, dict, scenario_lib.Setting]:
         estimate = jax.eval_shape(lambda pr, th, k: jitted[name](pr, th, k, args.particles), where.problem,
                                   where.theta0, key)
         check_aux(name, estimate.aux)
+    progress = Progress(args.points)
     for index, delta in enumerate(args.deltas):
         row_key = dict(task=args.task, model=args.model, particles=args.particles, delta_theta=float(delta),
                        seed=args.seed, scenario=where.content, fd_step=args.fd_step, estimators=args.estimators)
@@ -195,9 +196,10 @@ def run(args: Args) -> tuple[pd.DataFrame, dict, scenario_lib.Setting]:
         start = time.perf_counter()
         row = measure_delta(args, where, float(delta), key, jitted)
         table.append({**row_key, **row, "scenario_settings": args.scenario_name})
-        print(f"[{index + 1}/{args.points}] delta={delta:.3f}: J {row['value']:.3f}, FD slope {row['fd_slope']:.3g}, "
-              + ", ".join(f"{n} {row[f'{n}_grad']:.3g}" for n in str_list(args.estimators))
-              + f", FTLE {row['ftle_mean']:.3f}  ({time.perf_counter() - start:.1f} s)", file=sys.stderr, flush=True)
+        print(progress.line(index, f"delta={delta:.3f}: J {row['value']:.3f}, FD slope {row['fd_slope']:.3g}, "
+                            + ", ".join(f"{n} {row[f'{n}_grad']:.3g}" for n in str_list(args.estimators))
+                            + f", FTLE {row['ftle_mean']:.3f}  ({time.perf_counter() - start:.1f} s)"),
+              file=sys.stderr, flush=True)
     slices_path = args.stem + "_slices.npz"
     slices = {}
     stored = dict(np.load(slices_path)) if os.path.exists(slices_path) else {}

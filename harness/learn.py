@@ -1,7 +1,8 @@
 """Episodic learning with each method, and its success rates (PIPPS, section "Experiments").
 
+    python -m harness.learn      # a demonstration in minutes: TP against PILCO, 2 repeats, the demo preset
     python -m harness.learn --task cartpole --cost angle --noise-k 1 \
-        --methods pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n --repeats R --preset quick|quick_p50|paper \
+        --methods pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n --repeats R --preset demo|quick|quick_p50|paper \
         [--task-options angle_cost_scale=1,rbf_parameterisation=pseudo_inputs] [--gp-inducing 300]
 
 Each experiment (method, repeat) is one learning run (``harness.episodic.learning_run``): the
@@ -47,7 +48,7 @@ from harness import learn_report
 from harness.cli import check_sizes, parse, run_command, str_list
 from harness.episodic import RunState, evaluate_policy, in_precision, learning_run, policy_optimiser
 from harness.keys import stream
-from harness.methods import DEFAULT_METHODS, METHODS, method, runnable
+from harness.methods import METHODS, method, runnable
 from harness.records import ResultTable, code_version, load_pickle, save_pickle
 from models import gp
 
@@ -67,6 +68,9 @@ PRESETS = {
     "quick": dict(learned_trials=8, optimiser_steps=600, particles=300, eval_runs=30, pilco_steps=150, gp_steps=100),
     "quick_p50": dict(learned_trials=5, optimiser_steps=600, particles=50, eval_runs=10, pilco_steps=40, gp_steps=60),
     "paper": dict(learned_trials=0, optimiser_steps=600, particles=300, eval_runs=30, pilco_steps=150, gp_steps=100),
+    # demo: the command's default, a demonstration in minutes on 2 cores (TP against PILCO, 2 repeats), not a
+    # regime to read rates from
+    "demo": dict(learned_trials=3, optimiser_steps=600, particles=50, eval_runs=5, pilco_steps=40, gp_steps=50),
 }
 PARTICLE_ONLY = ("optimiser_steps", "particles")
 KEY_COLUMNS = ["task", "cost", "noise_k", "task_options", "method", "repeat", "seed", "settings"]
@@ -86,14 +90,14 @@ class Args:
     """Observation-noise multiplier k of the paper's tables."""
     task_options: str = ""
     """Task options over its preset's, NAME=VALUE,... (e.g. angle_cost_scale=1)."""
-    methods: str = DEFAULT_METHODS
-    """Comma-separated methods (harness.methods.METHODS)."""
-    repeats: int = 10
+    methods: str = "tp,pilco"
+    """Comma-separated methods (harness.methods.METHODS; the paper's columns: harness.methods.DEFAULT_METHODS)."""
+    repeats: int = 2
     """Learning runs per method (repeat r uses seed + r)."""
     first_repeat: int = 0
     """Run repeats first_repeat..repeats-1 only (harness.sweep gives each unit its batch)."""
-    preset: str = "quick"
-    """Settings preset: quick, quick_p50 or paper (learn.PRESETS)."""
+    preset: str = "demo"
+    """Settings preset: demo (minutes), quick, quick_p50 or paper (learn.PRESETS)."""
     seed: int = 0
     """Seed of repeat 0."""
     out: str = "reports"
@@ -216,6 +220,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
                   "batch's trials would mix library versions (docs/deviations.md: the jax 0.10.2 entry)", file=sys.stderr,
                   flush=True)
     start = time.perf_counter() - (rows[-1]["seconds"] if rows else 0.0)
+    started = time.perf_counter()
 
     def on_trial(record, data):
         if record.learned:
@@ -237,8 +242,11 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
         evaluation = f", evaluation mean {scores.mean():.2f}" if record.learned else ""
         if np.nansum(nonfinite) > 0:
             evaluation += f", NON-FINITE estimates in {nonfinite.astype(int).tolist()} optimiser steps"
+        done_here = record.trial + 1 - (resume.trials_done if resume is not None else 0)  # trials this process ran
+        left = (time.perf_counter() - started) / done_here * (num_trials - record.trial - 1)
         print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: trial {record.trial + 1}/{num_trials},"
-              f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s)", file=sys.stderr, flush=True)
+              f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s; about {left / 60:.0f} min left"
+              " in this batch)", file=sys.stderr, flush=True)
 
     learning_run(task, problem, run_keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
                  batched=True, trim_model=True, resume=resume, num_inducing=args.gp_inducing,

@@ -28,7 +28,7 @@ import pandas as pd
 import estimators
 from harness import keys
 from harness import scenario as scenario_lib
-from harness.cli import check_sizes, float_list, int_list, parse, run_command, str_list
+from harness.cli import Progress, check_sizes, float_list, int_list, parse, run_command, str_list
 from harness.records import ResultTable
 
 KEY_COLUMNS = ["task", "model", "estimator", "particles", "delta_theta", "repeats", "seed", "scenario"]
@@ -145,6 +145,7 @@ def run(args: Args) -> tuple[pd.DataFrame, scenario_lib.Setting]:
     key = keys.stream(jax.random.key(args.seed), "estimates")
     cells = [(d, name, p) for d in float_list(args.delta_theta) for name in str_list(args.estimators)
              for p in args.particle_counts]
+    progress = Progress(len(cells))
     for index, (delta, name, num_particles) in enumerate(cells):
         row_key = dict(task=args.task, model=args.model, estimator=name, particles=num_particles,
                        delta_theta=delta, repeats=args.num_repeats, seed=args.seed, scenario=where.content)
@@ -154,9 +155,9 @@ def run(args: Args) -> tuple[pd.DataFrame, scenario_lib.Setting]:
                                  args.num_repeats, key)
         stats = cell_statistics(rep)
         table.append({**row_key, **stats, "scenario_settings": args.scenario_name})
-        print(f"[{index + 1}/{len(cells)}] {name:7s} P={num_particles:5d} delta={delta:g}: "
-              f"variance {stats['variance']:.3e}  ({stats['seconds_per_estimate']:.2f} s/estimate, "
-              f"compile {stats['compile_seconds']:.1f} s)", file=sys.stderr, flush=True)
+        print(progress.line(index, f"{name:7s} P={num_particles:5d} delta={delta:g}: variance {stats['variance']:.3e}"
+                                   f"  ({stats['seconds_per_estimate']:.2f} s/estimate, compile "
+                                   f"{stats['compile_seconds']:.1f} s)"), file=sys.stderr, flush=True)
     print(f"variance: scenario {where.content}: {table.summary()}", file=sys.stderr, flush=True)
     rows = table.read()
     return rows[(rows.seed == args.seed) & (rows.repeats == args.num_repeats) & (rows.scenario == where.content)], where

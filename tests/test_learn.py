@@ -7,7 +7,7 @@ import pytest
 
 from harness import learn, learn_report, methods, records
 
-TINY = ["--repeats", "3", "--batch", "2", "--learned-trials", "1", "--optimiser-steps", "2", "--particles", "4", "--eval-runs", "2",
+TINY = ["--preset", "quick", "--repeats", "3", "--batch", "2", "--learned-trials", "1", "--optimiser-steps", "2", "--particles", "4", "--eval-runs", "2",
         "--pilco-steps", "2", "--gp-steps", "3"]
 
 
