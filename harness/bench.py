@@ -34,9 +34,9 @@ import pandas as pd
 import estimators
 import tasks
 from estimators.base import task_problem
-from harness.cli import int_list, parse, run_command, str_list
+from harness.cli import Progress, int_list, parse, run_command, str_list
 from harness import bench_learning, keys
-from harness.episodic import add_episode
+from harness.episodic import add_episode, cast_floating
 from harness.methods import DEFAULT_METHODS
 from harness.records import code_version
 from models import gp
@@ -69,13 +69,15 @@ class Args:
     """Methods timed again with the FITC sparse GP past 300 points."""
     fitc_float32_learning_methods: str = "tp"
     """Methods timed again with both the FITC sparse GP and float32 rollouts."""
+    dtypes: str = "float64,float32"
+    """Comma-separated precisions of the gradient timings (float32: the GP fitted in float64, cast)."""
     out: str = "reports"
     """Folder for bench.md and the CSVs."""
 
 
-def matmul_rate(n: int = 2048, repeats: int = 5) -> float:
-    """Float64 FLOP/s of an n x n matmul (median of ``repeats``)."""
-    a = jax.random.normal(jax.random.key(0), (n, n), jnp.float64)
+def matmul_rate(n: int = 2048, repeats: int = 5, dtype=jnp.float64) -> float:
+    """FLOP/s of an n x n matmul in ``dtype`` under XLA (median of ``repeats``)."""
+    a = jax.random.normal(jax.random.key(0), (n, n), jnp.float64).astype(dtype)
     f = jax.jit(lambda x: x @ x)
     jax.block_until_ready(f(a))
     times = []
@@ -86,11 +88,18 @@ def matmul_rate(n: int = 2048, repeats: int = 5) -> float:
     return 2 * n**3 / float(np.median(times))
 
 
-def gp_gradient_flops(num_particles: int, horizon: int, num_points: int, outputs: int) -> float:
-    """Flop model of a GP rollout's forward + gradient: per particle, step and output the
-    predictive variance's ``v = L^-1 k`` costs 2 N^2 (dominant); the backward pass about twice
-    the forward: 3 * 2 N^2 * E * P * T."""
-    return 3 * 2 * num_points**2 * outputs * num_particles * horizon
+MATRIX_PRODUCTS = {"tp": 3}
+"""N x N matrix-vector products per particle, step and output, as implemented (``gp_gradient_flops``); 2 for
+every estimator not listed."""
+
+
+def gp_gradient_flops(estimator: str, num_particles: int, horizon: int, num_points: int, outputs: int) -> float:
+    """Flop model of one value and gradient on the GP, as implemented: the dominant cost is the predictive
+    variance's N x N products per particle, step and output, 2 N^2 each. Reverse mode through the rollout
+    (RP, GR, LR, BIW-LR and their fixed-noise forms) forms ``v = L^-1 k`` and, for the gradient, ``w = L^-T v``
+    (``models.gp.explained_variance``'s JVP): 2 products. TP rolls out once (``v``) and re-linearises every
+    step in its backward pass (``v`` and ``w`` again): 3. The O(N D) kernel and O(P^2) BIW terms are left out."""
+    return MATRIX_PRODUCTS.get(estimator, 2) * 2 * num_points**2 * outputs * num_particles * horizon
 
 
 def bench_problem(args: Args):
@@ -132,14 +141,19 @@ def main(argv=None) -> None:
         estimators.make(name)
     print("bench: building the GP ...", file=sys.stderr, flush=True)
     task, problem, theta, num_points = bench_problem(args)
-    rate = matmul_rate()
+    rates = {dtype: matmul_rate(dtype=jnp.dtype(dtype)) for dtype in str_list(args.dtypes)}
     rows = []
-    cells = [(name, p) for p in int_list(args.particles) for name in str_list(args.estimators)]
-    for index, (name, num_particles) in enumerate(cells):
-        stats = time_estimator(estimators.make(name), problem, theta, num_particles, args.repeats)
-        rows.append({"estimator": name, "particles": num_particles, **stats})
-        print(f"[{index + 1}/{len(cells)}] {name:7s} P={num_particles:5d}: {stats['median_s']:.3f} s "
-              f"(compile {stats['compile_s']:.1f} s, peak {stats['peak_memory_mb']:.0f} MiB)",
+    cells = [(dtype, name, p) for dtype in rates for p in int_list(args.particles) for name in str_list(args.estimators)]
+    progress = Progress(len(cells))
+    for index, (dtype, name, num_particles) in enumerate(cells):
+        cast = dataclasses.replace(problem, model_params=cast_floating(problem.model_params, jnp.dtype(dtype)))
+        stats = time_estimator(estimators.make(name), cast, cast_floating(theta, jnp.dtype(dtype)), num_particles,
+                               args.repeats)
+        flops = gp_gradient_flops(name, num_particles, task.horizon, num_points, task.model_state_dim)
+        rows.append({"estimator": name, "dtype": dtype, "particles": num_particles, **stats,
+                     "gflop": flops / 1e9, "roofline_fraction": flops / rates[dtype] / stats["median_s"]})
+        print(progress.line(index, f"{name:7s} {dtype} P={num_particles:5d}: {stats['median_s']:.3f} s "
+                                   f"(compile {stats['compile_s']:.1f} s, peak {stats['peak_memory_mb']:.0f} MiB)"),
               file=sys.stderr, flush=True)
     table = pd.DataFrame(rows).assign(code_version=version)
     os.makedirs(args.out, exist_ok=True)
@@ -151,51 +165,50 @@ def main(argv=None) -> None:
                                           str_list(args.fitc_learning_methods),
                                           str_list(args.fitc_float32_learning_methods), seed=args.seed)
         learning.assign(code_version=version).to_csv(os.path.join(args.out, "bench_learning.csv"), index=False)
-    write_report(args, table, rate, task, num_points, learning)
+    write_report(args, table, rates, task, num_points, learning)
 
 
-def write_report(args: Args, table: pd.DataFrame, rate: float, task, num_points: int,
+def write_report(args: Args, table: pd.DataFrame, rates: dict[str, float], task, num_points: int,
                  learning: pd.DataFrame | None = None) -> None:
-    median = table.pivot(index="estimator", columns="particles", values="median_s")
-    ratio = median.div(median.loc["rp"]) if "rp" in median.index else None
+    def wide(values: str, dtype: str, fmt: str) -> str:
+        chosen = table[table.dtype == dtype].pivot(index="estimator", columns="particles", values=values)
+        return chosen.reset_index().to_markdown(index=False, floatfmt=fmt)
+
     lines = [
         "# Benchmark: one gradient estimate, cart-pole, GP model",
         "",
         f"Command: `python -m harness.bench --particles {args.particles} --repeats {args.repeats} "
-        f"--trials {args.trials} --learning-methods '{args.learning_methods}' "
+        f"--trials {args.trials} --dtypes {args.dtypes} --learning-methods '{args.learning_methods}' "
         f"--float32-learning-methods '{args.float32_learning_methods}' "
         f"--pseudo-input-learning-methods '{args.pseudo_input_learning_methods}' "
         f"--fitc-learning-methods '{args.fitc_learning_methods}' "
         f"--fitc-float32-learning-methods '{args.fitc_float32_learning_methods}'`",
         "",
         f"- Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
-        f"JAX {jax.__version__} on {jax.default_backend()}; float64.",
+        f"JAX {jax.__version__} on {jax.default_backend()} ({jax.devices()[0].device_kind}).",
         f"- Setting: cart-pole `pipps` preset, T = {task.horizon}, GP with {num_points} training points "
-        f"({args.trials} random episodes, {args.gp_steps} L-BFGS steps), RBF policy at its initial parameters.",
-        f"- Matmul rate measured in this run: {rate / 1e9:.1f} GFLOP/s (float64, 2048 x 2048).",
-        "",
-        "Median seconds per estimate after compilation (rows: estimator; columns: particles):",
-        "",
-        median.reset_index().to_markdown(index=False, floatfmt=".3f"),
+        f"({args.trials} random episodes, {args.gp_steps} L-BFGS steps), RBF policy at its initial parameters; "
+        "float32 casts the float64-fitted GP and theta.",
+        "- Matmul rate measured in this run (2048 x 2048 under XLA): "
+        + ", ".join(f"{dtype} {rate / 1e9:.1f} GFLOP/s" for dtype, rate in rates.items()) + ".",
+        "- Flop model (`gp_gradient_flops`, as implemented): 2 N^2 per N x N product, per particle, step and output; "
+        "2 products for the reverse-mode estimators (v = L^-1 k forward, w = L^-T v for the gradient), 3 for TP "
+        "(its backward pass re-linearises each step). The roofline fraction is the time those flops take at the "
+        "matmul rate over the time measured.",
         "",
     ]
-    if ratio is not None:
-        lines += ["Ratio to RP (target: TP and BIW-LR at most 1.5 at P = 300):", "",
-                  ratio.reset_index().to_markdown(index=False, floatfmt=".2f"), ""]
-        rp = table[table.estimator == "rp"]
-        achieved = [gp_gradient_flops(p, task.horizon, num_points, task.model_state_dim) / t
-                    for p, t in zip(rp.particles, rp.median_s)]
-        lines += ["RP gradient's achieved rate under the flop model of `gp_gradient_flops` "
-                  "(3 x 2 N^2 per particle, step and output):", "",
-                  "| particles | GFLOP/s | fraction of matmul rate |", "|---|---|---|"]
-        lines += [f"| {p} | {a / 1e9:.2f} | {a / rate:.2f} |" for p, a in zip(rp.particles, achieved)]
-        lines.append("")
-    lines += ["Compile seconds:", "",
-              table.pivot(index="estimator", columns="particles", values="compile_s").reset_index().to_markdown(
-                  index=False, floatfmt=".1f"), "",
-              "Memory of the compiled program (MiB; arguments + outputs + temporaries, XLA memory_analysis):", "",
-              table.pivot(index="estimator", columns="particles", values="peak_memory_mb").reset_index().to_markdown(
-                  index=False, floatfmt=".0f"), ""]
+    for dtype in rates:
+        median = table[table.dtype == dtype].pivot(index="estimator", columns="particles", values="median_s")
+        lines += [f"Median seconds per estimate after compilation, {dtype} (rows: estimator; columns: particles):", "",
+                  median.reset_index().to_markdown(index=False, floatfmt=".3f"), ""]
+        if "rp" in median.index:
+            lines += [f"Ratio to RP, {dtype}:", "", median.div(median.loc["rp"]).reset_index().to_markdown(
+                index=False, floatfmt=".2f"), ""]
+        lines += [f"Roofline fraction, {dtype}:", "", wide("roofline_fraction", dtype, ".2f"), ""]
+    first = next(iter(rates))
+    lines += [f"Compile seconds ({first}):", "", wide("compile_s", first, ".1f"), "",
+              f"Memory of the compiled program ({first}; MiB; arguments + outputs + temporaries, XLA "
+              "memory_analysis):", "", wide("peak_memory_mb", first, ".0f"), ""]
     if learning is not None:
         lines += bench_learning.report_lines(learning)
     with open(os.path.join(args.out, "bench.md"), "w") as f:

@@ -130,7 +130,9 @@ def test_bench_runs_tiny(tmp_path):
                 "--learning-methods", "", "--out", str(tmp_path)])
     table = pd.read_csv(tmp_path / "bench.csv")
     assert set(table.estimator) == {"rp", "tp"} and (table.median_s > 0).all() and (table.peak_memory_mb > 0).all()
-    assert "Ratio to RP" in (tmp_path / "bench.md").read_text()
+    assert set(table.dtype) == {"float64", "float32"} and (table.roofline_fraction > 0).all()
+    report = (tmp_path / "bench.md").read_text()
+    assert "Ratio to RP, float32" in report and "Roofline fraction, float64" in report
 
 
 def test_learning_time_projection_sums_the_quadratic_over_trials():
