@@ -577,11 +577,13 @@ def rate_figure(success: pd.DataFrame, path: str) -> None:
     groups = list(success.groupby(["task", "cost"]))
     fig, axes = plt.subplots(1, len(groups), figsize=(6.5 * len(groups), 4.5), squeeze=False)
     for ax, ((task, cost), group) in zip(axes[0], groups):
-        for index, label in enumerate(column_order(group.label.unique())):
+        labels = column_order(group.label.unique())
+        for index, label in enumerate(labels):
             line = group[group.label == label].sort_values("k")
-            ax.errorbar(line.k, line.rate, yerr=[line.rate - line.low, line.high - line.rate], marker="o",
+            shifted = line.k * 10 ** (0.04 * (index - (len(labels) - 1) / 2))  # side by side at each k
+            ax.errorbar(shifted, line.rate, yerr=[line.rate - line.low, line.high - line.rate], marker="o",
                         color=f"C{index % 10}", capsize=3, label=label)
-            ax.plot(line.k, line.paper, "x", color=f"C{index % 10}", markersize=8)
+            ax.plot(shifted, line.paper, "x", color=f"C{index % 10}", markersize=8)
         ax.set_xscale("log")
         ax.set_xlabel("observation-noise multiplier k")
         ax.set_ylabel("success rate (x: the paper's)")
