@@ -121,3 +121,22 @@ def float_list(text: str) -> list[float]:
 
 def str_list(text: str) -> list[str]:
     return [x.strip() for x in text.split(",") if x.strip()]
+
+
+COMMANDS = ("variance", "landscape", "compare", "learn", "learn_report", "sweep", "bench", "reproduce", "summary",
+            "mjx_agreement")
+"""The experiments that ``pipps NAME ...`` runs (each is also ``python -m harness.NAME``)."""
+
+
+def pipps(argv=None) -> None:
+    """The ``pipps`` console script: ``pipps NAME [flags]`` runs ``harness.NAME``'s command."""
+    import importlib
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] not in COMMANDS:
+        given = f"unknown command {argv[0]!r}; " if argv and not argv[0].startswith("-") else ""
+        print(f"error: {given}usage: pipps {{{','.join(COMMANDS)}}} [flags] (pipps NAME --help lists NAME's flags)",
+              file=sys.stderr)
+        raise SystemExit(2)
+    main = importlib.import_module(f"harness.{argv[0]}").main
+    run_command(lambda: main(argv[1:]))

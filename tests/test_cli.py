@@ -71,3 +71,16 @@ def test_a_corrupt_results_csv_is_named_and_left_untouched(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(corrupt) in err[0] and "not a readable results CSV" in err[0]
     assert corrupt.read_bytes() == before
+
+
+def test_the_pipps_console_script_runs_each_command_and_names_a_wrong_one(capsys):
+    from harness.cli import COMMANDS, pipps
+
+    for name in COMMANDS:
+        with pytest.raises(SystemExit) as stopped:
+            pipps([name, "--help"])
+        assert stopped.value.code == 0
+    with pytest.raises(SystemExit) as stopped:
+        pipps(["varience"])
+    assert stopped.value.code == 2
+    assert capsys.readouterr().err.strip().startswith("error: unknown command 'varience'; usage: pipps {variance,")
