@@ -151,7 +151,7 @@ FLOAT32_ROLLOUT_SETTING = "rollout_f32"
 FLOAT32_NONFINITE_CAUSE = (
     "Under `rollout_f32` (particle rollouts in float32) the one traced cause so far is float32 overflow: a "
     "particle's gradient beyond about 1.8e19 squares past float32's largest number in the estimate's variance "
-    "(`grad_var`), while the value and gradient stay finite (`reports/diagnostics/rp_nonfinite_replay.py`, RP "
+    "(`grad_var`), while the value and gradient stay finite (`diagnostics/rp_nonfinite_replay.py`, RP "
     "on cart-pole at k = 1); the CSV keeps only the count, not which part was not finite.")
 
 

@@ -155,14 +155,32 @@ def claims_table(claims: list[Claim], link_prefix: str = "") -> str:
     return "\n".join(lines)
 
 
-def summary_text(claims: list[Claim]) -> str:
+def report_index(reports: str) -> list[str]:
+    """A line per report (``*.md`` under ``reports``, the archive last): its link and its title."""
+    paths = sorted(os.path.relpath(os.path.join(folder, name), reports)
+                   for folder, _, names in os.walk(reports) for name in names
+                   if name.endswith(".md") and name != "SUMMARY.md" and ".cache" not in folder)
+    paths.sort(key=lambda path: (path.startswith("archive"), path.count(os.sep), path))
+    lines = []
+    for path in paths:
+        with open(os.path.join(reports, path)) as f:
+            title = f.readline().lstrip("# ").strip()
+        lines.append(f"- [{path}]({path}): {title}")
+    return lines
+
+
+def summary_text(claims: list[Claim], reports: str) -> str:
     return "\n".join([
         "# What reproduces", "",
         "Written by `python -m harness.summary` from the committed results (verdict rules: "
         "`harness/summary.py`). The README shows the same table.", "",
         claims_table(claims), "",
         "Every report states its command, settings and scenario; `python -m harness.reproduce` recomputes "
-        "them at a small size and compares.", ""])
+        "them at a small size and compares.", "",
+        "## Every report", "",
+        "`archive/` holds results kept for the record: the gradient reports at the earlier, flat scenario, the "
+        "conventions grid and runs superseded by a bug fix (their commands name the folders they were written to).",
+        "", *report_index(reports), ""])
 
 
 def readme_with_table(readme: str, claims: list[Claim]) -> str:
@@ -177,7 +195,7 @@ def main(argv=None) -> None:
     args = parse(Args, argv)
     reports = args.reports if os.path.isabs(args.reports) else os.path.join(ROOT, args.reports)
     claims = all_claims(reports)
-    targets = {os.path.join(reports, "SUMMARY.md"): summary_text(claims)}
+    targets = {os.path.join(reports, "SUMMARY.md"): summary_text(claims, reports)}
     readme = os.path.join(ROOT, "README.md")
     with open(readme) as f:
         targets[readme] = readme_with_table(f.read(), claims)

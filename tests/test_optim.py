@@ -69,7 +69,7 @@ def test_non_finite_estimates_at_chosen_steps_are_counted_and_move_nothing():
 
 
 def test_a_float32_particle_gradient_past_1e19_still_takes_its_step():
-    """Regression (RP's repeat 0 at k = 1, ``reports/diagnostics/rp_nonfinite_replay.py``): float32
+    """Regression (RP's repeat 0 at k = 1, ``diagnostics/rp_nonfinite_replay.py``): float32
     particle gradients with a median near 1e15 and one particle at 1e25 are finite, but their
     squares pass float32's 3.4e38, so a float32 variance overflowed and the optimiser moved those
     parameters nothing. The variance is now accumulated in float64 (x64 is on in the tests): it is

@@ -11,7 +11,8 @@ from harness.records import ROOT
 def test_the_committed_summary_and_readme_table_are_what_the_command_writes():
     claims = summary.all_claims(os.path.join(ROOT, "reports"))
     with open(os.path.join(ROOT, "reports", "SUMMARY.md")) as f:
-        assert f.read() == summary.summary_text(claims), "reports/SUMMARY.md is stale: run python -m harness.summary"
+        assert f.read() == summary.summary_text(claims, os.path.join(ROOT, "reports")), \
+            "reports/SUMMARY.md is stale: run python -m harness.summary"
     with open(os.path.join(ROOT, "README.md")) as f:
         readme = f.read()
     assert readme == summary.readme_with_table(readme, claims), "the README's table is stale: python -m harness.summary"

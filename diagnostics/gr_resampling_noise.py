@@ -3,7 +3,7 @@ resampling noise as it is now (xi independent of the sampling noise eps) and as 
 2026-12-06 (xi = eps: drawn from ``fold_in(key, 1)``, which is eps's own key in jax). Not part
 of the harness: the provenance of numbers quoted in the README.
 
-    python reports/diagnostics/gr_resampling_noise.py [estimates=4000]
+    python diagnostics/gr_resampling_noise.py [estimates=4000]
 
 Prints, per P and variant, the mean value against the exact J (with its z-score) and the
 gradient's relative bias per parameter, over ``estimates`` independent keys.

@@ -3,8 +3,8 @@ committed checkpoint, to see where its non-finite gradient estimates come from (
 learning table's progress). Not part of the harness: the provenance of numbers quoted there.
 
     git show 7984992:reports/learn_checkpoints/<RP repeats 0-4 checkpoint> > state.pkl  # after trial 12
-    python reports/diagnostics/rp_nonfinite_replay.py state.pkl fit posterior.pkl      # batched, as the run
-    python reports/diagnostics/rp_nonfinite_replay.py state.pkl replay posterior.pkl f32|f64 [batched]
+    python diagnostics/rp_nonfinite_replay.py state.pkl fit posterior.pkl      # batched, as the run
+    python diagnostics/rp_nonfinite_replay.py state.pkl replay posterior.pkl f32|f64 [batched]
 
 ``fit`` refits the GP of all five repeats as ``harness.episodic.learning_run`` does. ``replay``
 runs the trial's 600 optimiser steps with the run's key: ``batched`` all five repeats through

@@ -1,7 +1,7 @@
 """Do the learning runs' programs meet jaxlib 0.10.2's wrong-results bug? Not part of the harness:
 the provenance of the numbers in the README's jax 0.10.2 entry.
 
-    python reports/diagnostics/ynn_reduce_check.py [--full-gp-sizes | --optimiser]
+    python diagnostics/ynn_reduce_check.py [--full-gp-sizes | --optimiser]
 
 The bug (jax-ml/jax#39103) lies in XLA:CPU's YNNPACK reduce fusions: with
 ``XLA_FLAGS=--xla_cpu_experimental_ynn_fusion_type=-reduce`` the BIW-LR test that fails under

@@ -2,7 +2,7 @@
 CPU backend does: jax-ml/jax#39103.) Not part of the harness: the provenance of the numbers in
 the README's jax 0.10.2 entry. Run it under each jaxlib to compare (a venv with ``jax==0.10.1``):
 
-    python reports/diagnostics/vmap_float32_check.py
+    python diagnostics/vmap_float32_check.py
 
 1. The linear-Gaussian system, BIW-LR at P = 20, 200 keys batched against each key alone: the
    relative error of every estimate's gradient (0.10.2: wrong from index 81, the 82nd key;
