@@ -24,6 +24,7 @@ import os
 import sys
 
 from itertools import combinations
+from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -364,16 +365,27 @@ def partial(present, own: tuple[str, ...]) -> str:
     return f"partial, {names} not measured: "
 
 
-def claim_tp_not_below_pilco(group: pd.DataFrame) -> str:
+class Finding(NamedTuple):
+    """A claim's evaluation: ``details`` (the rates compared; "" where nothing was) and its ``verdict``; as text
+    "details: verdict"."""
+
+    details: str
+    verdict: str
+
+    def __str__(self) -> str:
+        return f"{self.details}: {self.verdict}" if self.details else self.verdict
+
+
+def claim_tp_not_below_pilco(group: pd.DataFrame) -> Finding:
     """Claim (a), TP >= PILCO at k = 1, in one (task, cost, options) group of ``success_rows``."""
     cell = group[group.k == 1.0].set_index("method", drop=False)
     if absent := missing(cell.index, ["tp", "pilco"]):
-        return absent + " at k = 1"
+        return Finding("", absent + " at k = 1")
     tp, pilco = cell.loc["tp"], cell.loc["pilco"]
     paper = PAPER_RATES.get((tp.task, tp.cost, 1.0), {})
     theirs = f"; the paper's own: TP {paper['tp']:.2f}, PILCO {paper['pilco']:.2f}" if paper else ""
-    return f"{rate_text(tp)} vs {rate_text(pilco)}: " + verdict(
-        {"TP vs PILCO": (fisher_p(tp, pilco), tp.rate >= pilco.rate)}, "two-sided Fisher exact") + theirs
+    return Finding(f"{rate_text(tp)} vs {rate_text(pilco)}", verdict(
+        {"TP vs PILCO": (fisher_p(tp, pilco), tp.rate >= pilco.rate)}, "two-sided Fisher exact") + theirs)
 
 
 def needs_ks(task: str, cost: str, k: float) -> str:
@@ -383,19 +395,19 @@ def needs_ks(task: str, cost: str, k: float) -> str:
     return f"undecided: needs {needed} (this file has only k = {k:g})"
 
 
-def claim_lr_tp_degrade_least(group: pd.DataFrame) -> str:
+def claim_lr_tp_degrade_least(group: pd.DataFrame) -> Finding:
     """Claim (b), LR and TP lose the smallest fraction of their rate from the smallest to the
     largest k, in one (task, cost, options) group of ``success_rows``; compares the paper's
     methods measured at both ends."""
     ks = sorted(group.k.unique())
     if absent := missing(group.method, ["lr", "tp"]):
-        return absent
+        return Finding("", absent)
     if len(ks) < 2:
-        return needs_ks(group.task.iloc[0], group.cost.iloc[0], ks[0])
+        return Finding("", needs_ks(group.task.iloc[0], group.cost.iloc[0], ks[0]))
     first, last = (group[group.k == k].set_index("method", drop=False) for k in (ks[0], ks[-1]))
     both = set(first.index) & set(last.index)
     if absent := missing(both, ["lr", "tp"]):
-        return f"{absent} at both k = {ks[0]:g} and k = {ks[-1]:g}"
+        return Finding("", f"{absent} at both k = {ks[0]:g} and k = {ks[-1]:g}")
     others = [m for m in PAPER_METHODS if m not in ("lr", "tp") and m in both]
     drops = {m: relative_drop(first.loc[m].rate, last.loc[m].rate) for m in ["lr", "tp", *others]}
     listed = ", ".join(f"{m.upper()} {'-' if np.isnan(drop) else f'{drop:.2f}'}" for m, drop in drops.items())
@@ -403,14 +415,14 @@ def claim_lr_tp_degrade_least(group: pd.DataFrame) -> str:
     header = (f"{partial(both, ('lr', 'tp'))}relative drop in rate (1 - rate at k = {ks[-1]:g} / rate at "
               f"k = {ks[0]:g}{dash}): {listed}")
     if nothing := [m.upper() for m in ("lr", "tp") if np.isnan(drops[m])]:
-        return f"{header}: undecided ({' and '.join(nothing)} had no success at k = {ks[0]:g})"
+        return Finding(header, f"undecided ({' and '.join(nothing)} had no success at k = {ks[0]:g})")
     others = [m for m in others if not np.isnan(drops[m])]
     if not others:
-        return f"{header}: not measured (no other method of the paper with a success at k = {ks[0]:g})"
+        return Finding(header, f"not measured (no other method of the paper with a success at k = {ks[0]:g})")
     comparisons = {f"{a.upper()} vs {b.upper()}": (retained_fraction_p(first.loc[a], last.loc[a], first.loc[b],
                                                                        last.loc[b]), drops[a] <= drops[b])
                    for a in ("lr", "tp") for b in others}
-    return f"{header}: " + verdict(comparisons, "two-sided Wald test of equal log ratios, Agresti-Caffo adjusted,")
+    return Finding(header, verdict(comparisons, "two-sided Wald test of equal log ratios, Agresti-Caffo adjusted,"))
 
 
 def relative_drop(first: float, last: float) -> float:
@@ -418,33 +430,33 @@ def relative_drop(first: float, last: float) -> float:
     return 1 - last / first if first > 0 else np.nan
 
 
-def claim_rp_fs_worst(cell: pd.DataFrame) -> str:
+def claim_rp_fs_worst(cell: pd.DataFrame) -> Finding:
     """Claim (c), RP_FS has the lowest rate of the paper's methods, in one (task, cost, k, options)
     cell of ``success_rows``."""
     cell = cell.set_index("method", drop=False)
     others = [m for m in PAPER_METHODS if m != "rp_fs" and m in cell.index]
     if absent := missing(cell.index, ["rp_fs"]):
-        return absent
+        return Finding("", absent)
     if not others:
-        return "not measured (no other method of the paper)"
+        return Finding("", "not measured (no other method of the paper)")
     rp_fs, lowest = cell.loc["rp_fs"], cell.loc[others].rate.idxmin()
     comparisons = {f"RP_FS vs {m.upper()}": (fisher_p(rp_fs, cell.loc[m]), rp_fs.rate <= cell.loc[m].rate)
                    for m in others}
-    return (f"{partial(cell.index, ('rp_fs',))}{rate_text(rp_fs)} vs the lowest other, "
-            f"{rate_text(cell.loc[lowest])}: " + verdict(comparisons, "two-sided Fisher exact"))
+    return Finding(f"{partial(cell.index, ('rp_fs',))}{rate_text(rp_fs)} vs the lowest other, "
+                   f"{rate_text(cell.loc[lowest])}", verdict(comparisons, "two-sided Fisher exact"))
 
 
-def claim_beats(cell: pd.DataFrame, winners: tuple[str, ...], losers: tuple[str, ...]) -> str:
+def claim_beats(cell: pd.DataFrame, winners: tuple[str, ...], losers: tuple[str, ...]) -> Finding:
     """Each method of ``winners`` has a higher rate than each of ``losers`` in one (task, cost, k, options) cell
     of ``success_rows``: a verdict over every pair present (two-sided Fisher exact)."""
     cell = cell.set_index("method", drop=False)
     if absent := missing(cell.index, list(winners) + list(losers)):
-        return absent
+        return Finding("", absent)
     listed = ", ".join(rate_text(cell.loc[m]) for m in winners + losers)
     comparisons = {f"{a.upper()} vs {b.upper()}": (fisher_p(cell.loc[a], cell.loc[b]),
                                                     cell.loc[a].rate > cell.loc[b].rate)
                    for a in winners for b in losers}
-    return f"{listed}: " + verdict(comparisons, "two-sided Fisher exact")
+    return Finding(listed, verdict(comparisons, "two-sided Fisher exact"))
 
 
 def ordering_lines(success: pd.DataFrame) -> list[str]:

@@ -33,8 +33,11 @@ CLAIMS_START = "<!-- claims table: written by python -m harness.summary; do not 
 CLAIMS_END = "<!-- end of claims table -->"
 VARIANCE_COMMANDS = {task: ["--task", task] for task in ("cartpole", "unicycle")}
 """The variance reports' commands (each task's default: its pinned scenario)."""
-LEARNING_TABLES = {"cartpole, angle cost, k = 1": "learn_cartpole_angle_k1"}
-"""Learning tables at the paper's settings (preset ``paper``), by the report's stem."""
+LEARNING_TABLES = {f"cartpole, angle cost, k = {k:g}": f"learn_cartpole_angle_k{k:g}" for k in (0.01, 1.0, 4.0, 9.0, 16.0)}
+LEARNING_TABLES |= {"cartpole, tip cost, k = 1": "learn_cartpole_tip_k1",
+                    "unicycle, paper preset": "learn_unicycle_default_k1"}
+"""Learning tables at the paper's settings (preset ``paper``), by the report's stem: a row each once its CSV
+is in reports/ (each cell's rates against the paper's)."""
 
 
 def paper_rates(task: str, cost: str, k: float, methods: tuple[str, ...]) -> str:
@@ -44,20 +47,45 @@ def paper_rates(task: str, cost: str, k: float, methods: tuple[str, ...]) -> str
     return ", ".join(f"{m} {PAPER_RATES[(task, cost, k)][m]:.2f}" for m in methods)
 
 
-def pending_claims() -> list[tuple[str, str, str]]:
-    """Claims whose runs are in ``plans/paper_tables.toml`` and not yet in reports/: (claim, the paper's
-    rates, report stem)."""
-    return [
-        ("LR and TP degrade least as the noise k grows (claim b)",
-         "; ".join(f"k = {k:g}: {paper_rates('cartpole', 'angle', k, ('tp', 'lr', 'pilco'))}" for k in (0.01, 16.0)),
-         "learn_cartpole_angle_k0.01, _k16"),
-        ("TP+sigma_n above TP at low noise (claim d)", paper_rates("cartpole", "angle", 0.01, ("tp+sigma_n", "tp")),
-         "learn_cartpole_angle_k0.01"),
-        ("With the tip cost, PILCO and GR beat the particle methods",
-         paper_rates("cartpole", "tip", 1.0, ("pilco", "gr", "tp", "lr")), "learn_cartpole_tip_k1"),
-        ("The unicycle at the paper's preset", paper_rates("unicycle", "default", 1.0, ("tp", "pilco")),
-         "learn_unicycle_default_k1"),
-    ]
+PAPER_KS = (0.01, 1.0, 4.0, 9.0, 16.0)
+"""The paper's noise levels of the cart-pole's angle-cost table."""
+
+
+def paper_success(reports: str, stems: list[str]):
+    """``learn_report.success_rows`` of the paper-preset CSVs among ``stems`` that exist (None if none does)."""
+    import pandas as pd
+
+    from harness.learn_report import success_rows
+
+    paths = [os.path.join(reports, stem + ".csv") for stem in stems]
+    present = [path for path in paths if os.path.exists(path)]
+    return success_rows(pd.concat([read_csv(path) for path in present], ignore_index=True)) if present else None
+
+
+def learning_findings(reports: str) -> list[tuple[str, str, object, str]]:
+    """The paper's learning claims beyond the k = 1 column: (claim, the paper's rates, a ``learn_report.Finding``
+    or None where no run is in reports/ yet, the report stems that decide it)."""
+    from harness import learn_report
+
+    angle = [f"learn_cartpole_angle_k{k:g}" for k in PAPER_KS]
+    findings = []
+    success = paper_success(reports, angle)
+    findings.append(("LR and TP degrade least as the noise k grows (claim b)",
+                     "; ".join(f"k = {k:g}: {paper_rates('cartpole', 'angle', k, ('tp', 'lr', 'pilco'))}"
+                               for k in (0.01, 16.0)),
+                     None if success is None or success.k.nunique() < 2 else learn_report.claim_lr_tp_degrade_least(
+                         success[success.options == ""]), "learn_cartpole_angle_k*"))
+    low = paper_success(reports, angle[:1])
+    findings.append(("TP+sigma_n above TP at low noise (claim d)",
+                     paper_rates("cartpole", "angle", 0.01, ("tp+sigma_n", "tp")),
+                     None if low is None else learn_report.claim_beats(low, ("tp+sigma_n",), ("tp",)),
+                     angle[0]))
+    tip = paper_success(reports, ["learn_cartpole_tip_k1"])
+    findings.append(("With the tip cost, PILCO and GR beat the particle methods",
+                     paper_rates("cartpole", "tip", 1.0, ("pilco", "gr", "tp", "lr")),
+                     None if tip is None else learn_report.claim_beats(tip, ("pilco", "gr"), ("tp", "lr")),
+                     "learn_cartpole_tip_k1"))
+    return findings
 
 
 class Claim(NamedTuple):
@@ -140,9 +168,16 @@ def learning_claims(name: str, stem: str, reports: str) -> list[Claim]:
 
 def all_claims(reports: str) -> list[Claim]:
     claims = [c for task in VARIANCE_COMMANDS for c in variance_claims(task, reports)]
-    claims += [c for name, stem in LEARNING_TABLES.items() for c in learning_claims(name, stem, reports)]
-    claims += [Claim(claim, paper, "not run yet", "undecided", f"`{stem}` (plans/paper_tables.toml)")
-               for claim, paper, stem in pending_claims()]
+    claims += [c for name, stem in LEARNING_TABLES.items() if os.path.exists(os.path.join(reports, stem + ".csv"))
+               for c in learning_claims(name, stem, reports)]
+    for claim, paper, finding, stems in learning_findings(reports):
+        link = f"`{stems}` (plans/paper_tables.toml)"
+        claims.append(Claim(claim, paper, "not run yet", "undecided", link) if finding is None else
+                      Claim(claim, paper, finding.details or "-", finding.verdict, link))
+    if missing := [name for name, stem in LEARNING_TABLES.items()
+                   if not os.path.exists(os.path.join(reports, stem + ".csv"))]:
+        claims.append(Claim("The learning tables not in reports/ yet", "Tables 1-2", "; ".join(missing), "not run yet",
+                            "`python -m harness.sweep --status` (plans/paper_tables.toml)"))
     return claims
 
 

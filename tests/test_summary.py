@@ -26,3 +26,21 @@ def test_the_verdict_rules():
     assert summary.jump_rule(np.array([1e2, 4e5])) == "holds"
     assert summary.jump_rule(np.array([0.02, 0.3])) == "reversed"
     assert summary.jump_rule(np.array([0.5, 40.0])) == "mixed"
+
+
+def test_the_learning_claims_come_from_the_csvs_once_they_are_in_reports(tmp_path):
+    """With no CSV a claim is "not run yet"; with the k = 0.01 column's CSV, claim (d) is evaluated from it
+    (``learn_report.claim_beats``), and claim (b) waits for a second k."""
+    from test_learn_report import rows_of, wins
+
+    assert [finding for _, _, finding, _ in summary.learning_findings(str(tmp_path))] == [None, None, None]
+    rows_of({**wins("tp+sigma_n", 9, k=0.01), **wins("tp", 5, k=0.01), **wins("lr", 5, k=0.01)}).to_csv(
+        tmp_path / "learn_cartpole_angle_k0.01.csv", index=False)
+    claim_b, claim_d, tip = [finding for _, _, finding, _ in summary.learning_findings(str(tmp_path))]
+    assert claim_b is None and tip is None
+    assert claim_d.details == "TP+SIGMA_N 0.90 [0.60, 0.98] n=10, TP 0.50 [0.24, 0.76] n=10"
+    assert claim_d.verdict.startswith("holds on the point estimates; not significant at 0.05, so undecided")
+    rows_of({**wins("tp", 4, k=16.0), **wins("lr", 5, k=16.0)}).to_csv(tmp_path / "learn_cartpole_angle_k16.csv",
+                                                                       index=False)
+    claim_b = summary.learning_findings(str(tmp_path))[0][2]
+    assert claim_b.verdict.startswith("not measured (no other method of the paper")
