@@ -14,8 +14,8 @@ The plan splits into units: (cell, method, batch of ``batch`` repeats), each one
 checkpoint folder and resumes from it; a lock file beside the checkpoint marks it running, so
 two sweeps (or one restarted beside another) never run the same unit. A unit returns its rows
 to the sweep, which appends those not yet in the cell's CSV (``harness.learn``'s file and key),
-deletes the unit's checkpoint and regenerates the cell's report: one CSV per cell, no row
-written twice, nothing finished lost by a kill. ``local`` runs units on a process pool (one XLA
+deletes the unit's checkpoint and regenerates the cell's report (and, writing to the repository's reports/,
+the claims table: ``harness.summary``): one CSV per cell, no row written twice, nothing finished lost by a kill. ``local`` runs units on a process pool (one XLA
 thread each); ``ray`` hands them to a Ray cluster (``pip install -e ".[ray]"``: the cluster that
 ``RAY_ADDRESS`` names, else a new local one), one CPU per unit, so a cluster of any size stays
 busy. Seeds depend only on the cell, method and repeat: both engines give the same rows.
@@ -204,8 +204,8 @@ def run_unit(unit: Unit) -> list[dict] | None:
 def merge(unit: Unit, rows: list[dict]) -> int:
     """Append the unit's rows whose (method, repeat) the cell's CSV lacks, delete the unit's
     checkpoint and regenerate the cell's report; returns the rows written."""
-    from harness import learn, learn_report
-    from harness.records import ResultTable
+    from harness import learn, learn_report, summary
+    from harness.records import ROOT, ResultTable
 
     args = unit.learn_args()
     table = ResultTable(args.stem + ".csv", learn.KEY_COLUMNS)
@@ -215,6 +215,8 @@ def merge(unit: Unit, rows: list[dict]) -> int:
         os.remove(unit.checkpoint())  # its rows are in the table now
     learn_report.write(learn.current_rows(args, table), args.stem,
                        f"python -m harness.sweep (units of harness.learn {' '.join(unit.argv)})")
+    if os.path.realpath(os.path.dirname(args.stem)) == os.path.realpath(os.path.join(ROOT, "reports")):
+        summary.main([])  # the claims table (reports/SUMMARY.md, the README's) follows the repository's CSVs
     return len(new)
 
 
