@@ -166,10 +166,32 @@ def learning_claims(name: str, stem: str, reports: str) -> list[Claim]:
                   f"[{stem}]({stem}.md)")]
 
 
+def reading_claims(reports: str, stem: str = "learn_cartpole_angle_k1") -> list[Claim]:
+    """A row per reading of a convention (``harness.methods.READINGS``) in ``readings/STEM.csv``, judged at the
+    cut of the table ``STEM.csv`` beside it, as the report that ``python -m harness.learn_report STEM.csv
+    readings/STEM.csv --out reports/readings/beside_K`` writes (K: the stem's k part, e.g. k1)."""
+    import pandas as pd
+
+    from harness.learn_report import success_rows
+    from harness.methods import METHODS
+
+    table, readings = os.path.join(reports, stem + ".csv"), os.path.join(reports, "readings", stem + ".csv")
+    if not (os.path.exists(table) and os.path.exists(readings)):
+        return []
+    success = success_rows(pd.concat([read_csv(table), read_csv(readings)], ignore_index=True))
+    read = set(read_csv(readings).method)
+    return [Claim(f"reading `{r.method}` of {METHODS[r.method].reads.upper()}'s convention, judged at the table's cut",
+                  f"{METHODS[r.method].reads} {r.paper:.2f}", f"{r.rate:.2f} [{r.low:.2f}, {r.high:.2f}] of {r.n}",
+                  "paper's rate inside" if r.inside == "yes" else "paper's rate outside",
+                  f"[readings/beside_{stem.rsplit('_', 1)[-1]}](readings/beside_{stem.rsplit('_', 1)[-1]}.md)")
+            for r in success.itertuples() if r.method in read]
+
+
 def all_claims(reports: str) -> list[Claim]:
     claims = [c for task in VARIANCE_COMMANDS for c in variance_claims(task, reports)]
     claims += [c for name, stem in LEARNING_TABLES.items() if os.path.exists(os.path.join(reports, stem + ".csv"))
                for c in learning_claims(name, stem, reports)]
+    claims += reading_claims(reports)
     for claim, paper, finding, stems in learning_findings(reports):
         link = f"`{stems}` (plans/paper_tables.toml)"
         claims.append(Claim(claim, paper, "not run yet", "undecided", link) if finding is None else
