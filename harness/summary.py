@@ -216,7 +216,8 @@ def report_index(reports: str) -> list[str]:
     """A line per report (``*.md`` under ``reports``, the archive last): its link and its title."""
     paths = sorted(os.path.relpath(os.path.join(folder, name), reports)
                    for folder, _, names in os.walk(reports) for name in names
-                   if name.endswith(".md") and name != "SUMMARY.md" and ".cache" not in folder)
+                   if name.endswith(".md") and name != "SUMMARY.md" and ".cache" not in folder
+                   and not name.endswith("_demo.md"))  # python -m harness.learn's demonstration: not a result
     paths.sort(key=lambda path: (path.startswith("archive"), path.count(os.sep), path))
     lines = []
     for path in paths:
