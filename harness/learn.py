@@ -220,7 +220,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
                   "batch's trials would mix library versions (docs/deviations.md: the jax 0.10.2 entry)", file=sys.stderr,
                   flush=True)
     start = time.perf_counter() - (rows[-1]["seconds"] if rows else 0.0)
-    started = time.perf_counter()
+    pace = dict(since=time.perf_counter(), learned=0)  # for the time left
 
     def on_trial(record, data):
         if record.learned:
@@ -242,11 +242,14 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
         evaluation = f", evaluation mean {scores.mean():.2f}" if record.learned else ""
         if np.nansum(nonfinite) > 0:
             evaluation += f", NON-FINITE estimates in {nonfinite.astype(int).tolist()} optimiser steps"
-        done_here = record.trial + 1 - (resume.trials_done if resume is not None else 0)  # trials this process ran
-        left = (time.perf_counter() - started) / done_here * (num_trials - record.trial - 1)
+        if record.learned:  # the time left from the learned trials this process ran (random ones cost nothing)
+            pace["learned"] += 1
+            left = (time.perf_counter() - pace["since"]) / pace["learned"] * (num_trials - record.trial - 1)
+            evaluation += f"; about {left / 60:.0f} min left in this batch"
+        else:
+            pace["since"] = time.perf_counter()
         print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: trial {record.trial + 1}/{num_trials},"
-              f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s; about {left / 60:.0f} min left"
-              " in this batch)", file=sys.stderr, flush=True)
+              f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s)", file=sys.stderr, flush=True)
 
     learning_run(task, problem, run_keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
                  batched=True, trim_model=True, resume=resume, num_inducing=args.gp_inducing,
