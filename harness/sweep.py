@@ -33,8 +33,6 @@ import sys
 import time
 import tomllib
 
-import numpy as np
-
 from harness.cli import parse, run_command
 
 ENGINES = ("local", "ray")
@@ -239,6 +237,8 @@ def unit_progress(unit: Unit) -> tuple[int, float]:
 def status_lines(units: list[Unit]) -> list[str]:
     """A line per unit (state, trials, hours) and a total with the hours left: a unit left is
     estimated at the median hours of the finished units of its task (of all, if none)."""
+    import numpy as np
+
     lines, hours_done, done_by_task, pending = [], 0.0, {}, []
     for unit in units:
         args = unit.learn_args()
@@ -300,6 +300,10 @@ def report(unit: Unit, rows: list[dict] | None) -> None:
 
 def main(argv=None) -> None:
     args = parse(Args, argv)
+    if args.engine == "local" and "jax" not in sys.modules:
+        # before anything loads JAX or SciPy's LAPACK (load_plan imports harness.learn): one thread each, for the
+        # units this process runs itself and for the spawned workers (which inherit the environment)
+        worker_init()
     units = load_plan(args.plan)
     if args.status:
         print("\n".join(status_lines(units)))
@@ -309,8 +313,6 @@ def main(argv=None) -> None:
         left = left[:args.max_units]
     print(f"{args.plan}: {len(units)} units, {len(left)} to run", file=sys.stderr, flush=True)
     start = time.perf_counter()
-    if "jax" not in sys.modules:  # this process runs units itself when --workers is 1
-        worker_init()
     if args.engine == "ray":
         run_ray(left)
     else:
