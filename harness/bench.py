@@ -145,10 +145,10 @@ def main(argv=None) -> None:
     rows = []
     cells = [(dtype, name, p) for dtype in rates for p in int_list(args.particles) for name in str_list(args.estimators)]
     progress = Progress(len(cells))
+    cast = {dtype: (dataclasses.replace(problem, model_params=cast_floating(problem.model_params, jnp.dtype(dtype))),
+                    cast_floating(theta, jnp.dtype(dtype))) for dtype in rates}
     for index, (dtype, name, num_particles) in enumerate(cells):
-        cast = dataclasses.replace(problem, model_params=cast_floating(problem.model_params, jnp.dtype(dtype)))
-        stats = time_estimator(estimators.make(name), cast, cast_floating(theta, jnp.dtype(dtype)), num_particles,
-                               args.repeats)
+        stats = time_estimator(estimators.make(name), *cast[dtype], num_particles, args.repeats)
         flops = gp_gradient_flops(name, num_particles, task.horizon, num_points, task.model_state_dim)
         rows.append({"estimator": name, "dtype": dtype, "particles": num_particles, **stats,
                      "gflop": flops / 1e9, "roofline_fraction": flops / rates[dtype] / stats["median_s"]})

@@ -48,7 +48,7 @@ from harness import learn_report
 from harness.cli import check_sizes, parse, run_command, str_list
 from harness.episodic import RunState, evaluate_policy, in_precision, learning_run, policy_optimiser
 from harness.keys import stream
-from harness.methods import METHODS, method, runnable
+from harness.methods import METHODS, runnable
 from harness.records import ResultTable, code_version, load_pickle, save_pickle
 from models import gp
 
@@ -134,7 +134,7 @@ class Args:
             raise ValueError(f"unknown methods {unknown}; valid methods: {runnable()} (a new estimator becomes "
                              "a method with an entry in harness.methods.METHODS)")
         task = self.make_task()  # fails with the valid tasks and options
-        if any(method(m).estimator == "pilco" for m in str_list(self.methods)):
+        if any(METHODS[m].estimator == "pilco" for m in str_list(self.methods)):
             check_task(task)
         if self.repeats < 1 or self.batch < 1:
             raise ValueError("repeats and batch must be >= 1")

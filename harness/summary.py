@@ -25,8 +25,11 @@ import sys
 from typing import NamedTuple
 
 import numpy as np
+import pandas as pd
 
+from harness import learn_report
 from harness.cli import parse, run_command
+from harness.methods import METHODS, PAPER_RATES
 from harness.records import ROOT, read_csv
 
 CLAIMS_START = "<!-- claims table: written by python -m harness.summary; do not edit by hand -->"
@@ -42,8 +45,6 @@ is in reports/ (each cell's rates against the paper's)."""
 
 def paper_rates(task: str, cost: str, k: float, methods: tuple[str, ...]) -> str:
     """The paper's rates of ``methods`` in one cell (``harness.methods.PAPER_RATES``), "tp 0.82, ..."."""
-    from harness.methods import PAPER_RATES
-
     return ", ".join(f"{m} {PAPER_RATES[(task, cost, k)][m]:.2f}" for m in methods)
 
 
@@ -52,21 +53,15 @@ PAPER_KS = (0.01, 1.0, 4.0, 9.0, 16.0)
 
 
 def paper_success(reports: str, stems: list[str]):
-    """``learn_report.success_rows`` of the paper-preset CSVs among ``stems`` that exist (None if none does)."""
-    import pandas as pd
-
-    from harness.learn_report import success_rows
-
+    """``learn_report.success_rows`` of the CSVs among ``stems`` that exist (None if none does)."""
     paths = [os.path.join(reports, stem + ".csv") for stem in stems]
     present = [path for path in paths if os.path.exists(path)]
-    return success_rows(pd.concat([read_csv(path) for path in present], ignore_index=True)) if present else None
+    return learn_report.success_rows(pd.concat([read_csv(p) for p in present], ignore_index=True)) if present else None
 
 
 def learning_findings(reports: str) -> list[tuple[str, str, object, str]]:
     """The paper's learning claims beyond the k = 1 column: (claim, the paper's rates, a ``learn_report.Finding``
     or None where no run is in reports/ yet, the report stems that decide it)."""
-    from harness import learn_report
-
     angle = [f"learn_cartpole_angle_k{k:g}" for k in PAPER_KS]
     findings = []
     success = paper_success(reports, angle)
@@ -151,9 +146,7 @@ def variance_claims(task: str, reports: str) -> list[Claim]:
 
 
 def learning_claims(name: str, stem: str, reports: str) -> list[Claim]:
-    from harness.learn_report import success_rows
-
-    success = success_rows(read_csv(os.path.join(reports, stem + ".csv")))
+    success = paper_success(reports, [stem])
     compared = success[success.inside != "-"]
     outside = compared[compared.inside == "no"]
     apart = "; ".join(f"{r.label} {r.rate:.2f} [{r.low:.2f}, {r.high:.2f}] against {r.paper:.2f}"
@@ -170,16 +163,11 @@ def reading_claims(reports: str, stem: str = "learn_cartpole_angle_k1") -> list[
     """A row per reading of a convention (``harness.methods.READINGS``) in ``readings/STEM.csv``, judged at the
     cut of the table ``STEM.csv`` beside it, as the report that ``python -m harness.learn_report STEM.csv
     readings/STEM.csv --out reports/readings/beside_K`` writes (K: the stem's k part, e.g. k1)."""
-    import pandas as pd
-
-    from harness.learn_report import success_rows
-    from harness.methods import METHODS
-
-    table, readings = os.path.join(reports, stem + ".csv"), os.path.join(reports, "readings", stem + ".csv")
-    if not (os.path.exists(table) and os.path.exists(readings)):
+    readings = os.path.join("readings", stem)
+    if not all(os.path.exists(os.path.join(reports, name + ".csv")) for name in (stem, readings)):
         return []
-    success = success_rows(pd.concat([read_csv(table), read_csv(readings)], ignore_index=True))
-    read = set(read_csv(readings).method)
+    success = paper_success(reports, [stem, readings])
+    read = set(read_csv(os.path.join(reports, readings + ".csv")).method)
     return [Claim(f"reading `{r.method}` of {METHODS[r.method].reads.upper()}'s convention, judged at the table's cut",
                   f"{METHODS[r.method].reads} {r.paper:.2f}", f"{r.rate:.2f} [{r.low:.2f}, {r.high:.2f}] of {r.n}",
                   "paper's rate inside" if r.inside == "yes" else "paper's rate outside",

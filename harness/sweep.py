@@ -27,6 +27,7 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import fcntl
+import functools
 import multiprocessing
 import os
 import sys
@@ -75,9 +76,8 @@ class Unit:
     last: int
 
     def learn_args(self):
-        from harness import learn
-
-        return learn.parse(learn.Args, list(self.argv) + ["--methods", self.method, "--repeats", str(self.last + 1)])
+        """The unit's ``harness.learn.Args`` (parsed once per unit and process)."""
+        return _learn_args(self.argv, self.method, self.last)
 
     @property
     def repeats(self) -> list[int]:
@@ -91,6 +91,13 @@ class Unit:
         from harness import learn
 
         return learn.checkpoint_path(self.learn_args(), self.method, self.repeats)
+
+
+@functools.cache
+def _learn_args(argv: tuple[str, ...], method: str, last: int):
+    from harness import learn
+
+    return learn.parse(learn.Args, list(argv) + ["--methods", method, "--repeats", str(last + 1)])
 
 
 def flag(name: str, value) -> list[str]:
@@ -144,9 +151,13 @@ def rows_written(unit: Unit):
     return rows[(rows.method == unit.method) & rows.repeat.isin(unit.repeats)]
 
 
-def is_done(unit: Unit) -> bool:
-    rows = rows_written(unit)
+def covers(rows, unit: Unit) -> bool:
+    """Whether ``rows`` (a unit's ``rows_written``, or None) hold every repeat of the unit."""
     return rows is not None and set(rows.repeat) >= set(unit.repeats)
+
+
+def is_done(unit: Unit) -> bool:
+    return covers(rows_written(unit), unit)
 
 
 @contextlib.contextmanager
@@ -168,16 +179,11 @@ def unit_lock(unit: Unit):
 
 
 def is_running(unit: Unit) -> bool:
-    path = unit.checkpoint() + ".lock"
-    if not os.path.exists(path):
+    """Whether another process holds the unit's lock (``unit_lock``)."""
+    if not os.path.exists(unit.checkpoint() + ".lock"):
         return False
-    with open(path, "a") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return True
-        fcntl.flock(handle, fcntl.LOCK_UN)
-    return False
+    with unit_lock(unit) as mine:
+        return not mine
 
 
 def run_unit(unit: Unit) -> list[dict] | None:
@@ -244,7 +250,7 @@ def status_lines(units: list[Unit]) -> list[str]:
         args = unit.learn_args()
         total = args.make_task().num_random_trials + args.settings["learned_trials"]
         rows = rows_written(unit)
-        if rows is not None and set(rows.repeat) >= set(unit.repeats):
+        if covers(rows, unit):
             hours = float(rows.groupby("repeat").seconds.max().max()) / 3600
             hours_done += hours
             done_by_task.setdefault(args.task, []).append(hours)
