@@ -199,7 +199,8 @@ class TrialRecord(NamedTuple):
 def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
                  optimise: Callable[[Problem, Any, jax.Array], Any], gp_steps: int,
                  on_trial: Callable[[TrialRecord, gp.GPData], None] = lambda record, data: None,
-                 batched: bool = False, trim_model: bool = False, resume: RunState | None = None,
+                 batched: bool = False, trim_model: bool = False, fit_rows_held: bool = False,
+                 resume: RunState | None = None,
                  num_inducing: int = 0, optimisation_key_per_run: bool = False):
     """The paper's episodic loop: the task's random trials, then ``num_learned`` times: fit the
     GP to all data (``gp_steps`` L-BFGS steps), ``theta = optimise(problem with the GP, theta,
@@ -215,6 +216,11 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
     ``trim_model``: optimise on the posterior cut to the rows held, rounded up to whole
     episodes (``gp.truncate``): prediction costs O(rows^2) instead of O(capacity^2), for one
     compilation of the optimiser per distinct size; worth it when the optimisation is long.
+
+    ``fit_rows_held``: fit the GP on the buffer cut to the rows held (``gp.trim_data``): the same
+    training set and objective as the whole buffer, whose padding rows are inert, at
+    O(rows^3) instead of O(capacity^3) per step of the fit. It changes the fit's round-off,
+    which the closed loop can amplify.
 
     ``num_inducing``: once the data hold more rows, fit PILCO's FITC sparse GP with that many
     inducing inputs instead of the full GP (``models.sparse_gp.fitter``; 0: always the full GP).
@@ -247,7 +253,8 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
     policy_episode = over_seeds(lambda k, th: run_episode(task, k, problem.policy, th))
     for trial in range(max(resume.trials_done - task.num_random_trials, 0), num_learned):
         rows_held = int(np.max(np.asarray(data.num_valid)))
-        posterior = gp.check_posterior(over_seeds(sparse_gp.fitter(num_inducing, rows_held, gp_steps))(data))
+        fit_data = gp.trim_data(data, rows_held) if fit_rows_held else data
+        posterior = gp.check_posterior(over_seeds(sparse_gp.fitter(num_inducing, rows_held, gp_steps))(fit_data))
         if trim_model and not sparse_gp.uses_fitc(num_inducing, rows_held):
             whole_episodes = -(-rows_held // task.horizon) * task.horizon
             posterior = gp.truncate(posterior, whole_episodes)

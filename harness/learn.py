@@ -212,6 +212,9 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     saved = load_pickle(checkpoint) or dict(state=None, rows=[])
     # a checkpoint's rows carry the code that ran them (blank where it predates the column)
     rows, resume = [{"code_version": "", **row} for row in saved["rows"]], saved["state"]
+    # fit on the rows held (same objective, other round-off), except in a batch begun before that
+    # option existed: a resumed batch computes what it began with
+    fit_rows_held = saved.get("fit_rows_held", resume is None)
     if resume is not None:
         print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: resuming after trial {resume.trials_done}/{num_trials}"
               f" ({checkpoint})", file=sys.stderr, flush=True)
@@ -238,7 +241,8 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
                              eval_std=float(scores[i].std(ddof=1)) if scores.shape[1] > 1 else np.nan,
                              data_points=int(num_valid[i]), nonfinite_steps=float(nonfinite[i]), seconds=seconds,
                              code_version=code_version()))
-        save_pickle(dict(state=RunState(record.trial + 1, record.theta, data), rows=rows, jax=JAX_VERSIONS), checkpoint)
+        save_pickle(dict(state=RunState(record.trial + 1, record.theta, data), rows=rows, jax=JAX_VERSIONS,
+                         fit_rows_held=fit_rows_held), checkpoint)
         evaluation = f", evaluation mean {scores.mean():.2f}" if record.learned else ""
         if np.nansum(nonfinite) > 0:
             evaluation += f", NON-FINITE estimates in {nonfinite.astype(int).tolist()} optimiser steps"
@@ -252,7 +256,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
               f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s)", file=sys.stderr, flush=True)
 
     learning_run(task, problem, run_keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
-                 batched=True, trim_model=True, resume=resume, num_inducing=args.gp_inducing,
+                 batched=True, trim_model=True, fit_rows_held=fit_rows_held, resume=resume, num_inducing=args.gp_inducing,
                  optimisation_key_per_run=chosen.noise_fixed_per_run)
     return rows
 

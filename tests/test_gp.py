@@ -122,6 +122,24 @@ def test_truncated_posterior_predicts_like_the_full_buffer():
         gp.truncate(post, 29)
 
 
+def test_trimmed_buffer_has_the_whole_buffers_objective_and_gradient():
+    """``gp.trim_data`` of a 45-row buffer holding 30 rows (add_data: valid rows first) to 30
+    and 36 rows: the objective of the GP fit and its gradient in the hyperparameters equal the
+    whole buffer's to 1e-10 relative (round-off only); cutting a valid row raises."""
+    x, y, log_hyp, _ = random_problem(2)
+    data = gp.add_data(gp.empty_data(45, x.shape[1], y.shape[1], jnp.float64), jnp.asarray(x), jnp.asarray(y))
+    value_and_grad = jax.value_and_grad(gp.objective)
+    whole_value, whole_grad = value_and_grad(jnp.asarray(log_hyp), data)
+    for rows in (30, 36):
+        cut = gp.trim_data(data, rows)
+        assert cut.inputs.shape == (rows, x.shape[1]) and int(cut.num_valid) == 30
+        value, grad = value_and_grad(jnp.asarray(log_hyp), cut)
+        np.testing.assert_allclose(value, whole_value, rtol=1e-10)
+        np.testing.assert_allclose(grad, whole_grad, rtol=1e-10, atol=1e-10 * np.abs(whole_grad).max())
+    with pytest.raises(ValueError, match="valid rows"):
+        gp.trim_data(data, 29)
+
+
 def test_nlml_matches_dense_numpy_full_and_masked():
     x, y, log_hyp, _ = random_problem(2)
     rng = np.random.default_rng(3)

@@ -76,12 +76,20 @@ def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_p
     monkeypatch.setattr(learn, "evaluate_policy", real)
     [checkpoint] = carried.iterdir()  # as one written before rows carried their code version
     saved = records.load_pickle(str(checkpoint))
-    assert saved["jax"] == learn.JAX_VERSIONS
-    records.save_pickle(dict(state=saved["state"],  # and before checkpoints named their jax version
+    assert saved["jax"] == learn.JAX_VERSIONS and saved["fit_rows_held"]  # a new batch fits on the rows held
+    records.save_pickle(dict(state=saved["state"],  # and before checkpoints named their jax version and fit
                              rows=[{n: v for n, v in r.items() if n != "code_version"} for r in saved["rows"]]),
                         str(checkpoint))
     capsys.readouterr()
+    real_run, fit_rows_held = learn.learning_run, []
+
+    def recording_run(*args, **kwargs):
+        fit_rows_held.append(kwargs["fit_rows_held"])
+        return real_run(*args, **kwargs)
+
+    monkeypatch.setattr(learn, "learning_run", recording_run)
     learn.main(argv + ["--out", str(out)])
+    assert fit_rows_held == [False]  # a checkpoint from before the option resumes with the fit it began with
     progress = capsys.readouterr().err
     assert "tp repeats 0-1: resuming after trial 2/3" in progress and "trial 2/3," not in progress
     assert f"ran under unrecorded jax, this process under {learn.JAX_VERSIONS}" in progress
