@@ -31,6 +31,7 @@ regenerates every table and figure from the CSV alone).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import os
 import sys
@@ -50,7 +51,8 @@ from harness.episodic import RunState, evaluate_policy, in_precision, learning_r
 from harness.keys import stream
 from harness.methods import METHODS, runnable
 from harness.records import ResultTable, code_version, load_pickle, save_pickle
-from models import gp
+from harness.scenario import Scenario, provenance, save_scenario
+from models import gp, sparse_gp
 
 JAX_VERSIONS = f"jax {jax.__version__}, jaxlib {jaxlib.__version__}"
 """Saved with every checkpoint: a resume under other versions says so (round-off, and bugs such
@@ -125,6 +127,10 @@ class Args:
     """FITC sparse GP with this many inducing inputs once the data exceed it (0: full GP)."""
     batch: int = 10
     """Repeats of a method vmapped together in one program."""
+    keep_final: bool = False
+    """Keep each run's final state as a scenario file (plain arrays and JSON, ``final_state_path``): the
+    data, the policy after the last trial and the GP the loop fits to all the data; gradient experiments
+    can start from it (issue: the curse of chaos at a policy that works)."""
 
     def __post_init__(self):
         if self.preset not in PRESETS:
@@ -195,6 +201,30 @@ def checkpoint_path(args: Args, method: str, repeats: list[int]) -> str:
     return os.path.join(args.checkpoints or os.path.join(args.out, ".cache", "learn"), name)
 
 
+def final_state_path(args: Args, method: str, repeat: int) -> str:
+    """``{out}/learn_final/{stem}_{method}_{settings}_seed{seed}`` (``.npz`` and ``.json``)."""
+    return os.path.join(args.out, "learn_final", f"{os.path.basename(args.stem)}_{method}_"
+                                                 f"{args.settings_name(method)}_seed{args.seed + repeat}")
+
+
+def keep_final_states(args: Args, method: str, repeats: list[int], theta, data: gp.GPData, rows: list[dict]) -> None:
+    """Each repeat's final state (theta and data with a leading repeat axis) as a scenario file
+    (``harness.scenario.save_scenario``), with the GP fitted to all its data as the loop fits one
+    (``gp_steps`` L-BFGS steps on the rows held; FITC past ``gp_inducing`` rows) and the key of its
+    table rows."""
+    rows_held = int(np.max(np.asarray(data.num_valid)))
+    fit = jax.vmap(sparse_gp.fitter(args.gp_inducing, rows_held, args.settings["gp_steps"]))
+    posterior = gp.check_posterior(fit(gp.trim_data(data, rows_held)))
+    task = args.make_task()
+    for index, repeat in enumerate(repeats):
+        own = functools.partial(jax.tree.map, lambda x: np.asarray(x[index]))
+        returns = np.array([row["trial_return"] for row in rows if row["repeat"] == repeat])
+        path = final_state_path(args, method, repeat)
+        save_scenario(dict(scenario=Scenario(own(data), own(posterior), own(theta), returns), provenance=provenance(),
+                           meta=dict(row_key(args, task, method, repeat), code_version=code_version())), path)
+        print(f"  {method} repeat {repeat}: final state kept in {path}.{{npz,json}}", file=sys.stderr, flush=True)
+
+
 def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     """One learning run per repeat, all vmapped together (``learning_run(batched=True)``),
     continuing from the batch's checkpoint if there is one; returns a row per repeat and trial
@@ -255,9 +285,11 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
         print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: trial {record.trial + 1}/{num_trials},"
               f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s)", file=sys.stderr, flush=True)
 
-    learning_run(task, problem, run_keys, settings["learned_trials"], optimise, settings["gp_steps"], on_trial,
-                 batched=True, trim_model=True, fit_rows_held=fit_rows_held, resume=resume, num_inducing=args.gp_inducing,
-                 optimisation_key_per_run=chosen.noise_fixed_per_run)
+    theta, data = learning_run(task, problem, run_keys, settings["learned_trials"], optimise, settings["gp_steps"],
+                               on_trial, batched=True, trim_model=True, fit_rows_held=fit_rows_held, resume=resume,
+                               num_inducing=args.gp_inducing, optimisation_key_per_run=chosen.noise_fixed_per_run)
+    if args.keep_final:
+        keep_final_states(args, method, repeats, theta, data, rows)
     return rows
 
 

@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import learn, learn_report, methods, records
+from harness import learn, learn_report, methods, records, scenario
 
 TINY = ["--preset", "quick", "--repeats", "3", "--batch", "2", "--learned-trials", "1", "--optimiser-steps", "2", "--particles", "4", "--eval-runs", "2",
         "--pilco-steps", "2", "--gp-steps", "3"]
@@ -14,7 +14,7 @@ TINY = ["--preset", "quick", "--repeats", "3", "--batch", "2", "--learned-trials
 def test_learning_runs_end_to_end_and_an_interrupted_run_resumes(tmp_path, monkeypatch, capsys):
     from harness import episodic
 
-    argv = TINY + ["--repeats", "1", "--methods", "pilco,tp+sigma_n", "--out", str(tmp_path)]
+    argv = TINY + ["--repeats", "1", "--methods", "pilco,tp+sigma_n", "--keep-final", "--out", str(tmp_path)]
     monkeypatch.setattr(episodic, "PROGRESS_EVERY", 1)
     real = learn.run_experiments
     calls = []
@@ -37,6 +37,13 @@ def test_learning_runs_end_to_end_and_an_interrupted_run_resumes(tmp_path, monke
     rows = pd.read_csv(csv)
     assert len(rows) == 2 * 1 * 2  # methods x repeats x (1 random + 1 learned trial)
     assert np.isfinite(rows[rows.learned].eval_mean).all() and (rows[rows.learned].nonfinite_steps == 0).all()
+    for method in ("pilco", "tp+sigma_n"):  # --keep-final: each run's last state, as a scenario file
+        args = learn.parse(learn.Args, argv)
+        kept = scenario.load_scenario(learn.final_state_path(args, method, 0), "cartpole")
+        ours = rows[rows.method == method]
+        np.testing.assert_array_equal(kept["scenario"].returns, ours.trial_return)
+        assert int(kept["scenario"].data.num_valid) == ours.data_points.max() and kept["meta"]["method"] == method
+        assert np.isfinite(kept["scenario"].posterior.alpha).all() and kept["meta"]["settings"] == ours.settings.iloc[0]
     progress = capsys.readouterr().err
     assert "[batch 2/2] tp+sigma_n, repeats [0]" in progress and "trial 2/2" in progress
     assert "optimiser step 2/2" in progress  # from inside the jitted, vmapped optimiser
