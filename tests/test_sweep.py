@@ -1,6 +1,7 @@
 """harness.sweep: a plan splits into units, units merge into one CSV per cell without
 duplicates, a killed unit resumes from its checkpoint, and both engines write the same rows."""
 
+import os
 import textwrap
 
 import pandas as pd
@@ -149,3 +150,14 @@ def test_the_ray_engine_writes_the_local_engines_rows(tmp_path):
     for k, local in written["local"].items():
         assert len(local) == 2  # 1 random + 1 learned trial
         pd.testing.assert_frame_equal(written["ray"][k], local, check_exact=False, rtol=1e-9)
+
+
+def test_the_chaos_scenarios_source_run_has_the_k1_tables_settings():
+    """plans/chaos_scenario.toml's source run is TP at the k = 1 table's settings (the same task, settings key
+    and precision as that cell of plans/paper_tables.toml), keeping its final state."""
+    [source] = sweep.load_plan(os.path.join(records.ROOT, "plans", "chaos_scenario.toml"))
+    table = [u for u in sweep.load_plan(os.path.join(records.ROOT, "plans", "paper_tables.toml"))
+             if u.method == "tp" and u.learn_args().noise_k == 1.0 and u.learn_args().out == "reports"]
+    ours, theirs = source.learn_args(), table[0].learn_args()
+    assert source.method == "tp" and source.repeats == [0] and ours.keep_final
+    assert (ours.settings_name("tp"), ours.make_task(), ours.x64) == (theirs.settings_name("tp"), theirs.make_task(), theirs.x64)
