@@ -248,6 +248,18 @@ def load_or_build(args: ScenarioArgs, cache_dir: str, pinned_dir: str = PINNED_D
     return jax.tree.map(jax.numpy.asarray, saved["scenario"]), source
 
 
+def from_file(path: str, task: str) -> tuple[Scenario, str]:
+    """The scenario saved at ``path`` (``save_scenario``), with where it came from as a phrase for reports
+    (the file, its ``description`` if it has one, and its provenance)."""
+    saved = load_scenario(path, task)
+    if saved is None:
+        raise ValueError(f"no scenario file {path}.npz and {path}.json (harness.learn --keep-final writes a "
+                         "learning run's final state as one)")
+    described = f"{saved['meta']['description']}; " if "description" in saved["meta"] else ""
+    return (jax.tree.map(jax.numpy.asarray, saved["scenario"]),
+            f"{described}the scenario file {path}.{{npz,json}}, {describe_provenance(saved)}")
+
+
 TASK_SCENARIOS = {
     "cartpole": dict(scenario_trials=4, scenario_steps=150, scenario_particles=100, scenario_estimator="pilco"),
     "unicycle": dict(scenario_trials=2, scenario_steps=200, scenario_particles=100, scenario_estimator="tp"),
@@ -297,6 +309,9 @@ class ExperimentArgs:
     finds it (commit the file)."""
     scenarios_dir: str = PINNED_DIR
     """Folder of the pinned scenarios."""
+    scenario_file: str = ""
+    """Start from this scenario file (PATH of PATH.npz and PATH.json, e.g. a learning run's final state kept
+    by ``harness.learn --keep-final``) instead of the task's pinned or built scenario."""
 
     def __post_init__(self):
         tasks.make(self.task)  # fails with the list of tasks
@@ -314,8 +329,9 @@ class ExperimentArgs:
 
     @property
     def scenario_name(self) -> str:
-        """The scenario's cache name (a hash of its settings), recorded in every result row."""
-        return os.path.basename(cache_path(self.scenario, ""))
+        """The scenario's name in every result row: its file's name, or its cache name (a hash of its
+        settings)."""
+        return os.path.basename(self.scenario_file or cache_path(self.scenario, ""))
 
     def scenario_lines(self, where: dict[str, "Setting"], rows, note: str = "") -> list[str]:
         """The report's lines on the scenario: how it was built, where it came from (pinned or
@@ -323,11 +339,14 @@ class ExperimentArgs:
         model of ``where`` (``objective_line``)."""
         hashes = ", ".join(sorted(map(str, rows.scenario.unique())))
         source = next(iter(where.values())).source
-        return [f"- Scenario: {self.scenario.describe()}{note}; {source}. Content hash {hashes} (theta0, the "
+        built = "" if self.scenario_file else f"{self.scenario.describe()}{note}; "
+        return [f"- Scenario: {built}{source}. Content hash {hashes} (theta0, the "
                 "direction and the GP posterior, at float32 precision): every row shown was computed on it.",
                 *[objective_line(setting, model, self.seed) for model, setting in where.items()]]
 
     def scenario_flags(self) -> str:
+        if self.scenario_file:
+            return f"--scenario-file {self.scenario_file}"
         return (f"--scenario-trials {self.scenario_trials} --scenario-steps {self.scenario_steps} "
                 f"--scenario-particles {self.scenario_particles} --scenario-estimator {self.scenario_estimator}"
                 + (" --rebuild-scenario" if self.rebuild_scenario else ""))
@@ -430,8 +449,11 @@ def content_hash(theta0, direction, posterior: gp.GPPosterior) -> str:
 def settings(args: ExperimentArgs, models: list[str]) -> dict[str, Setting]:
     """The Setting of ``args`` under each of ``models``, from one load (or build, cached under
     ``args.out``) of the scenario."""
-    scn, source = load_or_build(args.scenario, os.path.join(args.out, ".cache"), args.scenarios_dir,
-                                args.rebuild_scenario, args.pin_scenario)
+    if args.scenario_file:
+        scn, source = from_file(args.scenario_file, args.task)
+    else:
+        scn, source = load_or_build(args.scenario, os.path.join(args.out, ".cache"), args.scenarios_dir,
+                                    args.rebuild_scenario, args.pin_scenario)
     direction = unit_direction(scn.theta, keys.stream(jax.random.key(args.seed), "direction"))
     content = content_hash(scn.theta, direction, scn.posterior)
     return {model: Setting(model_problem(args.task, model, scn), scn.theta, direction, scn, content, source)

@@ -1,0 +1,53 @@
+"""The curse-of-chaos scenario's check (``harness.chaos``) on a small copy of its plan, with the cart-pole's
+pinned scenario standing in for the source run's final state; and a gradient experiment started from a
+scenario file (``--scenario-file``)."""
+
+import os
+import shutil
+
+import pytest
+
+from harness import chaos, learn, records, sweep, variance
+
+PLAN = os.path.join(records.ROOT, "plans", "chaos_scenario.toml")
+PINNED = os.path.join(records.ROOT, "scenarios", "scenario_cartpole_27b490aadc97")
+
+
+def small_plan(tmp_path, max_cost: float) -> str:
+    """The plan with its source run's output under tmp_path, 20 particles and ``max_cost``; the pinned
+    scenario copied to where the source run keeps its final state."""
+    text = open(PLAN).read()
+    for old, new in [('out = "reports/chaos_source"', f'out = "{tmp_path / "source"}"'),
+                     ("particles = 1000", "particles = 20"), ("max_cost = 10.0", f"max_cost = {max_cost}")]:
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / "plan.toml"
+    path.write_text(text)
+    [unit] = sweep.load_plan(str(path))
+    final = learn.final_state_path(unit.learn_args(), "tp", 0)
+    os.makedirs(os.path.dirname(final), exist_ok=True)
+    for ext in (".npz", ".json"):
+        shutil.copy(PINNED + ext, final + ext)
+    return str(path)
+
+
+def test_the_rule_is_quoted_before_its_numbers_and_decides_the_verdict(tmp_path, monkeypatch):
+    monkeypatch.setattr(chaos, "VARIANCE_REPEATS", 3)
+    monkeypatch.setattr(chaos, "MAX_DOUBLINGS", 1)
+    chaos.main(["--plan", small_plan(tmp_path, max_cost=1.0), "--out", str(tmp_path)])
+    report = (tmp_path / "chaos_scenario.md").read_text()
+    assert report.index("max_cost = 1.0") < report.index("## At the source run's final state")
+    # the pinned swing-up scenario has J near 25 of 30: above a cut of 1, so the rule fails and names the next repeat
+    assert "(the rule: at most 1): NOT met" in report and "The rule fails at repeat 0" in report
+    assert "set repeat = 1 in [theta0]" in report and "harness.landscape" not in report
+    assert "the scenario file" in report and "J along the line: " in report
+
+
+def test_a_gradient_experiment_starts_from_a_scenario_file(tmp_path):
+    out = str(tmp_path / "out")
+    variance.main(["--estimators", "rp", "--particles", "5", "--repeats", "2", "--delta-theta", "0",
+                   "--scenario-file", PINNED, "--out", out])
+    report = open(os.path.join(out, "variance_cartpole_gp.md")).read()
+    assert f"the scenario file {PINNED}.{{npz,json}}" in report and f"--scenario-file {PINNED}" in report
+    with pytest.raises(ValueError, match="keep-final"):
+        variance.main(["--scenario-file", str(tmp_path / "none"), "--out", out])
