@@ -323,7 +323,7 @@ def run(args: Args):
             continue
         print(f"[batch {index + 1}/{len(batches)}] {method}, repeats {missing}", file=sys.stderr, flush=True)
         # one append, so that a stop is unlikely to leave some repeats' rows, which a rerun would take as done
-        # (it is not atomic: learn_report leaves out an experiment with fewer trials than its settings)
+        # (it is not atomic: success.final_evaluations leaves out an experiment with fewer trials than its settings)
         table.extend([{**row_key(args, task, method, row["repeat"]), **row}
                       for row in run_experiments(args, method, missing)])
         os.remove(checkpoint_path(args, method, missing))  # its rows are in the table now

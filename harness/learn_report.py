@@ -3,110 +3,35 @@
     python -m harness.learn_report reports/learn_cartpole_angle_k1.csv
     python -m harness.learn_report reports/learn_cartpole_angle_k{0.01,1,4}.csv --out reports/learn_cartpole_angle
 
-Success: the final learned trial's evaluation (mean cost of ``eval_runs`` real runs) is below a
-threshold chosen from the pooled distribution of final evaluations of every method, k and
-repeat in the table under one cost scale (``THRESHOLD_KEYS``): the cut that minimises the
-within-group variance of the two groups it makes (Otsu's rule; where learning either swings the
-pole up or does not, the final costs are bimodal and the cut falls in the gap). The threshold,
-the two groups' separation (which says whether there was a gap to find) and the sorted final
-costs are printed with every table. Rates carry Wilson 95 % intervals.
+Success and its threshold are ``harness.success``'s, the paper's claims ``harness.claims``'s. The threshold,
+the two groups' separation (which says whether there was a gap to find) and the sorted final costs are
+printed with every table.
 
-Beside the wide table the report holds: a long table (``success_rows``: per task, cost, k and method the rate, its
-interval, the paper's rate and whether that lies inside the interval), every rate recomputed at the threshold
-x (1 -+ ``ROBUSTNESS``) with what that changes (rates, orderings between methods, verdicts against the paper), the
-paper's orderings evaluated from the rates (``ordering_lines``), and the compute time per method (``compute_hours``).
+Beside the wide table the report holds: a long table (``success.success_rows``: per task, cost, k and method the
+rate, its interval, the paper's rate and whether that lies inside the interval), every rate recomputed at the
+threshold x (1 -+ ``success.ROBUSTNESS``) with what that changes (rates, orderings between methods, verdicts against
+the paper), the paper's orderings evaluated from the rates (``claims.ordering_lines``), and the compute time per
+method (``success.compute_hours``).
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
 from itertools import combinations
-from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
 from scipy import stats
 
+from harness.claims import ALPHA, ordering_lines
 from harness.cli import OneLineParser, run_command
 from harness.methods import INVALID as INVALID_METHODS
-from harness.methods import METHODS, PAPER_METHODS, PAPER_RATES, READINGS, paper_rate
 from harness.records import read_csv
-
-Z95 = float(stats.norm.ppf(0.975))
-"""1.95996...: the two-sided 95 % normal quantile of the Wilson interval."""
-ALPHA = 0.05
-"""Level of the two-sided tests behind "significant" in the orderings."""
-ROBUSTNESS = 0.1
-"""Every rate is recomputed at the threshold x (1 - ROBUSTNESS) and x (1 + ROBUSTNESS)."""
-SCALES = (1 - ROBUSTNESS, 1.0, 1 + ROBUSTNESS)
-def otsu_threshold(values: np.ndarray) -> float:
-    """The cut between sorted values that minimises the summed within-group variance; non-finite
-    values (a run whose evaluation diverged: a failure at any cut) take no part."""
-    v = np.asarray(values, float)
-    v = np.sort(v[np.isfinite(v)])
-    if len(v) < 2 or v[0] == v[-1]:
-        return float(v[-1]) if len(v) else np.nan
-    costs = [np.var(v[:i]) * i + np.var(v[i:]) * (len(v) - i) for i in range(1, len(v))]
-    i = int(np.argmin(costs)) + 1
-    return float(0.5 * (v[i - 1] + v[i]))
-
-
-def wilson_interval(successes: int, n: int) -> tuple[float, float]:
-    """Wilson score 95 % interval of a binomial proportion."""
-    if n == 0:
-        return np.nan, np.nan
-    p = successes / n
-    centre = (p + Z95**2 / (2 * n)) / (1 + Z95**2 / n)
-    half = Z95 * np.sqrt(p * (1 - p) / n + Z95**2 / (4 * n**2)) / (1 + Z95**2 / n)
-    # exact ends where every run failed or learned (round-off would leave them a few ulps inside 0 or 1)
-    return (0.0 if successes == 0 else centre - half), (1.0 if successes == n else centre + half)
-
-
-OPTIONS_IN_COLUMNS = ("noise_k", "cost_type")
-"""Task options that are columns of their own (``noise_k``, ``cost``): never part of a label."""
-COST_SCALE_OPTIONS = ("preset", "dt", "horizon", "angle_cost_scale")
-"""Task options that change the cost of the same trajectory: final costs under different values
-of these are not pooled for a threshold."""
-
-
-def with_labels(rows: pd.DataFrame) -> pd.DataFrame:
-    """``rows`` with ``options``, the task options (other than ``OPTIONS_IN_COLUMNS``) that differ
-    between the file's runs (``" [angle_cost_scale=1.0,...]"``, "" when none do), ``label``, the
-    method followed by them, and ``scale``, those of them in ``COST_SCALE_OPTIONS``."""
-    parsed = rows.task_options.astype(str).map(lambda text: dict(item.split("=", 1) for item in text.split(",")))
-    names = sorted({name for opts in parsed for name in opts} - set(OPTIONS_IN_COLUMNS))
-    varying = [name for name in names if len({opts.get(name) for opts in parsed}) > 1]
-
-    def suffix(names):
-        return parsed.map(lambda opts: " [" + ",".join(f"{n}={opts.get(n)}" for n in names) + "]" if names else "")
-
-    options = suffix(varying)
-    return rows.assign(options=options, label=rows.method + options,
-                       scale=suffix([name for name in varying if name in COST_SCALE_OPTIONS]))
-
-
-EXPERIMENT = ["task", "cost", "noise_k", "task_options", "label", "settings", "repeat", "seed"]
-"""The columns that name one experiment (one repeat of one method under one set of settings)."""
-
-
-def final_evaluations(rows: pd.DataFrame) -> pd.DataFrame:
-    """Per experiment (``EXPERIMENT``): its last learned trial's row, whole. Experiments with
-    fewer learned trials than their settings name (``complete``) are left out."""
-    learned = with_labels(rows[rows.learned.astype(bool)])
-    learned = learned[complete(learned)]
-    return learned.sort_values("trial", kind="stable").drop_duplicates(EXPERIMENT, keep="last").reset_index(drop=True)
-
-
-def complete(learned: pd.DataFrame) -> pd.Series:
-    """Whether each row's experiment has as many learned trials as its ``settings`` name
-    (``learned_trialsN``; settings without that count pass): not so for a batch whose rows
-    were cut off while being written."""
-    wanted = learned.settings.astype(str).str.extract(r"learned_trials(\d+)", expand=False).astype(float)
-    trials = learned.groupby(EXPERIMENT).trial.transform("nunique")
-    return wanted.isna() | (trials >= wanted)
+from harness.success import (EXPERIMENT, PAPER_REPEATS, ROBUSTNESS, SCALES, THRESHOLD_KEYS, column_order, complete,
+                             compute_hours, final_evaluations, interval_text, pooled_rows, rates_at_scales,
+                             success_rows, success_table, with_labels)
 
 
 def incomplete_lines(learned: pd.DataFrame) -> list[str]:
@@ -117,12 +42,6 @@ def incomplete_lines(learned: pd.DataFrame) -> list[str]:
     names = "; ".join(f"{e.label}, k = {e.noise_k:g}, repeat {e.repeat} ({e.trial} trials)" for e in short.itertuples())
     return [f"**Left out: {len(short)} experiments with fewer learned trials than their settings** (rows cut off "
             f"while written; rerun them after deleting their rows): {names}.", ""]
-
-
-def column_order(labels) -> list[str]:
-    """Labels in the paper's column order (``harness.methods.METHODS``), then any others."""
-    rank = {method: i for i, method in enumerate(METHODS)}
-    return sorted(labels, key=lambda label: (rank.get(label.split(" [")[0], len(rank)), label))
 
 
 def nonfinite_lines(learned: pd.DataFrame) -> list[str]:
@@ -156,96 +75,10 @@ FLOAT32_NONFINITE_CAUSE = (
     "on cart-pole at k = 1); the CSV keeps only the count, not which part was not finite.")
 
 
-THRESHOLD_KEYS = ["task", "cost", "scale"]
-"""A threshold per cost scale (``with_labels``: the ``COST_SCALE_OPTIONS`` that vary)."""
-
-
-def otsu_thresholds(final: pd.DataFrame) -> dict:
-    """Otsu's threshold of the pooled final evaluation costs per (task, cost, scale), every k and method
-    but those of ``INVALID_METHODS`` (kept for the record, they must not move the valid rates' cut) and
-    ``harness.methods.READINGS`` (judged at the table's cut), unless a group holds nothing else (a file of
-    readings, or of superseded runs, is cut on its own costs)."""
-    return {key: otsu_threshold(pooled_rows(group).eval_mean.to_numpy())
-            for key, group in final.groupby(THRESHOLD_KEYS)}
-
-
-def pooled_rows(group: pd.DataFrame) -> pd.DataFrame:
-    """The final rows of one threshold group whose costs make its cut (``otsu_thresholds``)."""
-    for left_out in (list(INVALID_METHODS) + list(READINGS), list(INVALID_METHODS)):
-        kept = group[~group.method.isin(left_out)]
-        if len(kept):
-            return kept
-    return group
-
-
 def threshold_name(key: tuple) -> str:
     """'task, cost' (then the options, if any) of an ``otsu_thresholds`` key."""
     task, cost, scale = key
     return f"{task}, {cost}{scale}"
-
-
-def inside(paper: float, low: float, high: float) -> str:
-    """'yes' where the paper's rate lies in [low, high], 'no' where not, '-' where the paper has none."""
-    if np.isnan(paper):
-        return "-"
-    return "yes" if low <= paper <= high else "no"
-
-
-def success_rows(rows: pd.DataFrame, scale: float = 1.0) -> pd.DataFrame:
-    """One row per (task, cost, k, label), in the paper's method order: its ``method``, ``options``
-    (the label's task options suffix), successes ``wins`` (final evaluation cost below ``scale`` x Otsu's threshold of
-    the task and cost), ``n`` repeats, ``rate``, its Wilson 95 % ``low`` and ``high``, the ``paper``'s
-    rate (for a reading, that of the paper's method it reads: ``harness.methods.paper_rate``; NaN where it has
-    none) and ``inside`` (whether that lies in the interval)."""
-
-    final = final_evaluations(rows)
-    thresholds = otsu_thresholds(final)
-    cells = []
-    for (task, cost, cut, k, label), group in final.groupby(THRESHOLD_KEYS + ["noise_k", "label"]):
-        method, options = group.method.iloc[0], group.options.iloc[0]  # the label is the method and options
-        wins, n = int((group.eval_mean < scale * thresholds[(task, cost, cut)]).sum()), len(group)
-        low, high = wilson_interval(wins, n)
-        paper = paper_rate(method, task, cost, k)
-        cells.append(dict(task=task, cost=cost, k=float(k), label=label, method=method, options=options,
-                          wins=wins, n=n, rate=wins / n, low=low, high=high, paper=paper,
-                          inside=inside(paper, low, high), paper_p=paper_p(wins, n, paper)))
-    table = pd.DataFrame(cells)
-    rank = table.label.map({label: i for i, label in enumerate(column_order(table.label.unique()))})
-    table = table.assign(rank=rank).sort_values(["task", "cost", "k", "rank"])
-    return table.drop(columns="rank").reset_index(drop=True)
-
-
-PAPER_REPEATS = 100
-"""Repeats behind each of the paper's rates."""
-
-
-def paper_p(wins: int, n: int, paper: float) -> float:
-    """Two-sided Fisher exact p-value of our ``wins`` of ``n`` against the paper's rate as
-    ``PAPER_REPEATS`` repeats (the paper's own sampling error counted; NaN where it has none)."""
-    if np.isnan(paper):
-        return np.nan
-    theirs = round(paper * PAPER_REPEATS)
-    return float(stats.fisher_exact([[wins, n - wins], [theirs, PAPER_REPEATS - theirs]])[1])
-
-
-def interval_text(row) -> str:
-    """'rate [low, high]' of a ``success_rows`` row."""
-    return f"{row.rate:.2f} [{row.low:.2f}, {row.high:.2f}]"
-
-
-def success_table(rows: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
-    """Rows (task, cost, k), columns methods: 'rate [low, high] n=N (paper p)'; and the
-    threshold per (task, cost)."""
-    success = success_rows(rows)
-    text = success.apply(lambda row: f"{interval_text(row)} n={row.n}"
-                         + ("" if np.isnan(row.paper) else f" (paper {row.paper:.2f})"), axis=1)
-    table = success.assign(text=text).pivot(index=["task", "cost", "k"], columns="label", values="text")
-    return table[column_order(table.columns)], otsu_thresholds(final_evaluations(rows))
-
-
-def rates_at_scales(rows: pd.DataFrame) -> dict[float, pd.DataFrame]:
-    """``success_rows`` at the threshold x every scale of ``SCALES``, indexed by (task, cost, k, label)."""
-    return {scale: success_rows(rows, scale).set_index(["task", "cost", "k", "label"]) for scale in SCALES}
 
 
 def long_table(at: dict[float, pd.DataFrame]) -> pd.DataFrame:
@@ -301,206 +134,6 @@ def robustness_lines(at: dict[float, pd.DataFrame], thresholds: dict) -> list[st
                  pd.concat({scale: cells.inside for scale, cells in at.items()}, axis=1))}
     return lines + [f"- {what}: " + (f"{len(items)} ({'; '.join(items)})" if items else "none") + "."
                     for what, items in found.items()]
-
-
-def fisher_p(a, b) -> float:
-    """Two-sided Fisher exact p-value of equal success rates of two ``success_rows`` rows."""
-    return float(stats.fisher_exact([[a.wins, a.n - a.wins], [b.wins, b.n - b.wins]])[1])
-
-
-def retained_fraction_p(a_first, a_last, b_first, b_last) -> float:
-    """Two-sided p-value of equal fractions of the rate kept from the smallest to the largest k
-    (``a_last / a_first`` against ``b_last / b_first``, four independent ``success_rows`` rows): a
-    Wald z-test of the difference of the log ratios (delta method: var log p = (1 - p) / (n p)),
-    each rate adjusted by one success and one failure (Agresti and Caffo), so that rates of 0 or
-    1 keep a finite log and a variance."""
-    rates = [((r.wins + 1) / (r.n + 2), r.n + 2) for r in (a_first, a_last, b_first, b_last)]
-    logs = [np.log(p) for p, _ in rates]
-    difference = (logs[1] - logs[0]) - (logs[3] - logs[2])
-    sd = np.sqrt(sum((1 - p) / (n * p) for p, n in rates))
-    return float(2 * stats.norm.sf(abs(difference) / sd))
-
-
-def verdict(comparisons: dict[str, tuple[float, bool]], test: str) -> str:
-    """A claim made of pairwise comparisons (``comparisons``: name -> (two-sided p-value, whether
-    its point estimates agree with the claim)): 'holds' on the point estimates where every one
-    agrees, else 'does not hold'; then 'significant' where every one agrees with p < ``ALPHA``
-    (quoting the largest p), 'refuted' where one disagrees with p < ``ALPHA`` (quoting the
-    smallest such p), else 'undecided' (quoting the largest p, or the smallest of those that
-    disagree)."""
-    against = {name: p for name, (p, agrees) in comparisons.items() if not agrees}
-    if against:
-        quoted = min(against, key=against.get)
-        p, pool = against[quoted], f"of {len(against)} against the claim"
-    else:
-        quoted = max(comparisons, key=lambda name: comparisons[name][0])
-        p, pool = comparisons[quoted][0], f"of {len(comparisons)}"
-    which = f", the {'smallest' if against else 'largest'} {pool}: {quoted}" if len(comparisons) > 1 else ""
-    if p < ALPHA:
-        sign = f"{'refuted' if against else 'significant'} at {ALPHA:g}"
-    else:
-        sign = f"not significant at {ALPHA:g}, so undecided"
-    return f"{'does not hold' if against else 'holds'} on the point estimates; {sign} ({test} p = {p:.3g}{which})"
-
-
-def rate_text(row) -> str:
-    """'METHOD rate [low, high] n=N' of a ``success_rows`` row."""
-    return f"{row.method.upper()} {interval_text(row)} n={row.n}"
-
-
-def missing(present, methods) -> str:
-    """'not measured (no ... rows)' where a method of ``methods`` is not among ``present``, else ''."""
-    present = set(present)
-    absent = [m.upper() for m in methods if m not in present]
-    return f"not measured (no {', '.join(absent)} rows)" if absent else ""
-
-
-def partial(present, own: tuple[str, ...]) -> str:
-    """'partial, GR and GR_FS not measured: ' where a method of ``PAPER_METHODS`` (other than the
-    claim's ``own``) is not among ``present``: the claim is then judged against the others only."""
-    absent = [m.upper() for m in PAPER_METHODS if m not in set(present) and m not in own]
-    if not absent:
-        return ""
-    names = absent[0] if len(absent) == 1 else ", ".join(absent[:-1]) + " and " + absent[-1]
-    return f"partial, {names} not measured: "
-
-
-class Finding(NamedTuple):
-    """A claim's evaluation: ``details`` (the rates compared; "" where nothing was) and its ``verdict``; as text
-    "details: verdict"."""
-
-    details: str
-    verdict: str
-
-    def __str__(self) -> str:
-        return f"{self.details}: {self.verdict}" if self.details else self.verdict
-
-
-def claim_tp_not_below_pilco(group: pd.DataFrame) -> Finding:
-    """Claim (a), TP >= PILCO at k = 1, in one (task, cost, options) group of ``success_rows``."""
-    cell = group[group.k == 1.0].set_index("method", drop=False)
-    if absent := missing(cell.index, ["tp", "pilco"]):
-        return Finding("", absent + " at k = 1")
-    tp, pilco = cell.loc["tp"], cell.loc["pilco"]
-    paper = PAPER_RATES.get((tp.task, tp.cost, 1.0), {})
-    theirs = f"; the paper's own: TP {paper['tp']:.2f}, PILCO {paper['pilco']:.2f}" if paper else ""
-    return Finding(f"{rate_text(tp)} vs {rate_text(pilco)}", verdict(
-        {"TP vs PILCO": (fisher_p(tp, pilco), tp.rate >= pilco.rate)}, "two-sided Fisher exact") + theirs)
-
-
-def needs_ks(task: str, cost: str, k: float) -> str:
-    """Claim (b) undecided on a file with the single k ``k``: the k it needs (the paper's for the task and cost)."""
-    paper_ks = sorted(pk for t, c, pk in PAPER_RATES if (t, c) == (task, cost))
-    needed = f"k in {{{', '.join(f'{pk:g}' for pk in paper_ks)}}}" if len(paper_ks) > 1 else "at least two k"
-    return f"undecided: needs {needed} (this file has only k = {k:g})"
-
-
-def claim_lr_tp_degrade_least(group: pd.DataFrame) -> Finding:
-    """Claim (b), LR and TP lose the smallest fraction of their rate from the smallest to the
-    largest k, in one (task, cost, options) group of ``success_rows``; compares the paper's
-    methods measured at both ends."""
-    ks = sorted(group.k.unique())
-    if absent := missing(group.method, ["lr", "tp"]):
-        return Finding("", absent)
-    if len(ks) < 2:
-        return Finding("", needs_ks(group.task.iloc[0], group.cost.iloc[0], ks[0]))
-    first, last = (group[group.k == k].set_index("method", drop=False) for k in (ks[0], ks[-1]))
-    both = set(first.index) & set(last.index)
-    if absent := missing(both, ["lr", "tp"]):
-        return Finding("", f"{absent} at both k = {ks[0]:g} and k = {ks[-1]:g}")
-    others = [m for m in PAPER_METHODS if m not in ("lr", "tp") and m in both]
-    drops = {m: relative_drop(first.loc[m].rate, last.loc[m].rate) for m in ["lr", "tp", *others]}
-    listed = ", ".join(f"{m.upper()} {'-' if np.isnan(drop) else f'{drop:.2f}'}" for m, drop in drops.items())
-    dash = "; -: no success to lose" if any(np.isnan(drop) for drop in drops.values()) else ""
-    header = (f"{partial(both, ('lr', 'tp'))}relative drop in rate (1 - rate at k = {ks[-1]:g} / rate at "
-              f"k = {ks[0]:g}{dash}): {listed}")
-    if nothing := [m.upper() for m in ("lr", "tp") if np.isnan(drops[m])]:
-        return Finding(header, f"undecided ({' and '.join(nothing)} had no success at k = {ks[0]:g})")
-    others = [m for m in others if not np.isnan(drops[m])]
-    if not others:
-        return Finding(header, f"not measured (no other method of the paper with a success at k = {ks[0]:g})")
-    comparisons = {f"{a.upper()} vs {b.upper()}": (retained_fraction_p(first.loc[a], last.loc[a], first.loc[b],
-                                                                       last.loc[b]), drops[a] <= drops[b])
-                   for a in ("lr", "tp") for b in others}
-    return Finding(header, verdict(comparisons, "two-sided Wald test of equal log ratios, Agresti-Caffo adjusted,"))
-
-
-def relative_drop(first: float, last: float) -> float:
-    """``1 - last / first``: the fraction of its rate a method loses (NaN where it had none to lose)."""
-    return 1 - last / first if first > 0 else np.nan
-
-
-def claim_rp_fs_worst(cell: pd.DataFrame) -> Finding:
-    """Claim (c), RP_FS has the lowest rate of the paper's methods, in one (task, cost, k, options)
-    cell of ``success_rows``."""
-    cell = cell.set_index("method", drop=False)
-    others = [m for m in PAPER_METHODS if m != "rp_fs" and m in cell.index]
-    if absent := missing(cell.index, ["rp_fs"]):
-        return Finding("", absent)
-    if not others:
-        return Finding("", "not measured (no other method of the paper)")
-    rp_fs, lowest = cell.loc["rp_fs"], cell.loc[others].rate.idxmin()
-    comparisons = {f"RP_FS vs {m.upper()}": (fisher_p(rp_fs, cell.loc[m]), rp_fs.rate <= cell.loc[m].rate)
-                   for m in others}
-    return Finding(f"{partial(cell.index, ('rp_fs',))}{rate_text(rp_fs)} vs the lowest other, "
-                   f"{rate_text(cell.loc[lowest])}", verdict(comparisons, "two-sided Fisher exact"))
-
-
-def claim_beats(cell: pd.DataFrame, winners: tuple[str, ...], losers: tuple[str, ...]) -> Finding:
-    """Each method of ``winners`` has a higher rate than each of ``losers`` in one (task, cost, k, options) cell
-    of ``success_rows``: a verdict over every pair present (two-sided Fisher exact)."""
-    cell = cell.set_index("method", drop=False)
-    if absent := missing(cell.index, list(winners) + list(losers)):
-        return Finding("", absent)
-    listed = ", ".join(rate_text(cell.loc[m]) for m in winners + losers)
-    comparisons = {f"{a.upper()} vs {b.upper()}": (fisher_p(cell.loc[a], cell.loc[b]),
-                                                    cell.loc[a].rate > cell.loc[b].rate)
-                   for a in winners for b in losers}
-    return Finding(listed, verdict(comparisons, "two-sided Fisher exact"))
-
-
-def ordering_lines(success: pd.DataFrame) -> list[str]:
-    """The paper's orderings evaluated from ``success_rows``, a line each per (task, cost, task options)
-    and, for (c), per k: (a) TP >= PILCO at k = 1, (b) LR and TP degrade least as k grows, (c) RP_FS
-    is the worst method; where the cell is present, (d) TP+sigma_n above TP at k = 0.01 (angle cost)
-    and, with the tip cost at k = 1, PILCO and GR above the particle methods TP and LR."""
-    lines = []
-    for (task, cost, options), group in success.groupby(["task", "cost", "options"]):
-        name = f"{task}, {cost}{options}"
-        lines += [f"- (a) TP >= PILCO at k = 1 ({name}): {claim_tp_not_below_pilco(group)}.",
-                  f"- (b) LR and TP degrade least as k grows ({name}): {claim_lr_tp_degrade_least(group)}."]
-        lines += [f"- (c) RP_FS is the worst method ({name}, k = {k:g}): {claim_rp_fs_worst(cell)}."
-                  for k, cell in group.groupby("k")]
-        if cost == "angle" and (group.k == 0.01).any():
-            lines.append(f"- (d) TP+sigma_n above TP at k = 0.01 ({name}): "
-                         f"{claim_beats(group[group.k == 0.01], ('tp+sigma_n',), ('tp',))}.")
-        if cost == "tip" and (group.k == 1.0).any():
-            lines.append(f"- Tip cost: PILCO and GR above TP and LR at k = 1 ({name}): "
-                         f"{claim_beats(group[group.k == 1.0], ('pilco', 'gr'), ('tp', 'lr'))}.")
-    return lines
-
-
-def compute_hours(rows: pd.DataFrame) -> pd.DataFrame:
-    """Per label, and in total: ``repeats``, ``hours`` and ``hours per repeat`` of compute.
-
-    ``harness.learn`` runs a method's repeats in batches, vmapped together, and writes on every
-    repeat's row of a trial the same ``seconds``: the wall time since the batch began (carried
-    over a resume; the time between an interruption and its rerun is not in it). So a batch's
-    time is its last trial's ``seconds``, repeated on each of its repeats' rows: summing rows
-    would count it once per trial and repeat. A batch is recognised by the clock of its first
-    trial, the same on all its repeats' rows and on no other batch's, and each batch's time (its
-    largest ``seconds``) is counted once. Hours per repeat = hours / repeats: the repeats of a batch
-    share its time. Batches run one after another within a run; runs in parallel processes add up."""
-    rows = with_labels(rows)
-    setting = EXPERIMENT[:-2]  # without repeat and seed
-    clock = rows.sort_values("trial", kind="stable").groupby(EXPERIMENT).seconds
-    experiments = pd.DataFrame({"started": clock.first(), "seconds": clock.max()}).reset_index()
-    batches = experiments.groupby(setting + ["started"]).seconds.max().reset_index()
-    table = pd.DataFrame({"repeats": experiments.groupby("label").size(),
-                          "hours": batches.groupby("label").seconds.sum() / 3600})
-    table = table.loc[column_order(table.index)]
-    table.loc["total"] = table.sum()
-    return table.assign(**{"hours per repeat": table.hours / table.repeats}).rename_axis("label")
 
 
 def paper_comparison_lines(rows: pd.DataFrame, thresholds: dict) -> list[str]:

@@ -3,7 +3,7 @@
 A method is an estimator (``estimators.REGISTRY``) with problem overrides, an optimiser (PILCO's
 L-BFGS on its deterministic objective, or the paper's SGD), and how its noise is fixed. Beside
 the paper's columns the catalogue holds readings (another reading of one of the paper's
-conventions: run into their own CSV and judged at the table's cut, ``harness.learn_report``) and
+conventions: run into their own CSV and judged at the table's cut, ``harness.success``) and
 invalid names (rows kept for the record that measure no method of the paper). A new estimator
 becomes a learning method with one entry in ``METHODS``.
 

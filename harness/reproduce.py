@@ -46,9 +46,9 @@ import pandas as pd
 from scipy import stats
 
 import tasks
-from harness import learn_report
 from harness.cli import parse, run_command, str_list
 from harness.records import read_csv
+from harness.success import final_evaluations, otsu_thresholds, wilson_interval
 
 
 class Check(NamedTuple):
@@ -216,13 +216,13 @@ def compare_learning(committed: str, recomputed: str, flags: dict[str, str]) -> 
     """Each recomputed run's final cost against the committed run of the same seed (same side
     of the committed threshold), and the committed rate inside the recomputed Wilson interval."""
     everything = read_csv(committed + ".csv")
-    final_all = learn_report.final_evaluations(everything)
-    thresholds = learn_report.otsu_thresholds(final_all)  # the committed report's cut (invalid runs not pooled)
+    final_all = final_evaluations(everything)
+    thresholds = otsu_thresholds(final_all)  # the committed report's cut (invalid runs not pooled)
     if len(thresholds) != 1:
         raise ValueError(f"{committed}.csv has {len(thresholds)} success thresholds (cost scales "
                          f"{sorted(thresholds)}); reproduce compares a learning table with one")
     [threshold] = thresholds.values()
-    new = learn_report.final_evaluations(read_csv(recomputed + ".csv"))
+    new = final_evaluations(read_csv(recomputed + ".csv"))
     old = final_all[final_all.method.isin(new.method.unique())]
     keys = ["method", "repeat", "settings", "task_options"]
     merged = old.merge(new, on=keys, suffixes=("_c", "_r"))
@@ -239,7 +239,7 @@ def compare_learning(committed: str, recomputed: str, flags: dict[str, str]) -> 
         committed_group = old[(old.method == method) & old.settings.isin(group.settings)]
         rate_c = float((committed_group.eval_mean < threshold).mean())
         wins = int((group.eval_mean < threshold).sum())
-        low, high = learn_report.wilson_interval(wins, len(group))
+        low, high = wilson_interval(wins, len(group))
         rows.append(dict(quantity=f"{method}: success rate", committed=f"{rate_c:.2f} (n={len(committed_group)})",
                          recomputed=f"{wins / len(group):.2f} (n={len(group)})", rule=f"inside [{low:.2f}, {high:.2f}]",
                          agrees=bool(low <= rate_c <= high)))

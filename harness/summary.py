@@ -6,7 +6,7 @@
 Each claim is a row: the claim, the paper's number, ours, a verdict by a rule fixed here before
 the numbers it decides, and the report it comes from. The gradient claims come from the variance
 experiment's rows at its pinned scenario (``harness.variance.run`` reuses them: nothing is
-computed), the learning claims from the learning CSVs (``harness.learn_report.success_rows``).
+computed), the learning claims from the learning CSVs (``harness.success.success_rows``).
 Claims with no data yet say so and name the plan that will decide them.
 
 Verdict rules:
@@ -27,10 +27,11 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
-from harness import learn_report
+from harness.claims import claim_beats, claim_lr_tp_degrade_least
 from harness.cli import parse, run_command
 from harness.methods import METHODS, PAPER_RATES
 from harness.records import ROOT, read_csv
+from harness.success import success_rows
 
 CLAIMS_START = "<!-- claims table: written by python -m harness.summary; do not edit by hand -->"
 CLAIMS_END = "<!-- end of claims table -->"
@@ -53,14 +54,14 @@ PAPER_KS = (0.01, 1.0, 4.0, 9.0, 16.0)
 
 
 def paper_success(reports: str, stems: list[str]):
-    """``learn_report.success_rows`` of the CSVs among ``stems`` that exist (None if none does)."""
+    """``success_rows`` of the CSVs among ``stems`` that exist (None if none does)."""
     paths = [os.path.join(reports, stem + ".csv") for stem in stems]
     present = [path for path in paths if os.path.exists(path)]
-    return learn_report.success_rows(pd.concat([read_csv(p) for p in present], ignore_index=True)) if present else None
+    return success_rows(pd.concat([read_csv(p) for p in present], ignore_index=True)) if present else None
 
 
 def learning_findings(reports: str) -> list[tuple[str, str, object, str]]:
-    """The paper's learning claims beyond the k = 1 column: (claim, the paper's rates, a ``learn_report.Finding``
+    """The paper's learning claims beyond the k = 1 column: (claim, the paper's rates, a ``claims.Finding``
     or None where no run is in reports/ yet, the report stems that decide it)."""
     angle = [f"learn_cartpole_angle_k{k:g}" for k in PAPER_KS]
     findings = []
@@ -68,17 +69,17 @@ def learning_findings(reports: str) -> list[tuple[str, str, object, str]]:
     findings.append(("LR and TP degrade least as the noise k grows (claim b)",
                      "; ".join(f"k = {k:g}: {paper_rates('cartpole', 'angle', k, ('tp', 'lr', 'pilco'))}"
                                for k in (0.01, 16.0)),
-                     None if success is None or success.k.nunique() < 2 else learn_report.claim_lr_tp_degrade_least(
+                     None if success is None or success.k.nunique() < 2 else claim_lr_tp_degrade_least(
                          success[success.options == ""]), "learn_cartpole_angle_k*"))
     low = paper_success(reports, angle[:1])
     findings.append(("TP+sigma_n above TP at low noise (claim d)",
                      paper_rates("cartpole", "angle", 0.01, ("tp+sigma_n", "tp")),
-                     None if low is None else learn_report.claim_beats(low, ("tp+sigma_n",), ("tp",)),
+                     None if low is None else claim_beats(low, ("tp+sigma_n",), ("tp",)),
                      angle[0]))
     tip = paper_success(reports, ["learn_cartpole_tip_k1"])
     findings.append(("With the tip cost, PILCO and GR beat the particle methods",
                      paper_rates("cartpole", "tip", 1.0, ("pilco", "gr", "tp", "lr")),
-                     None if tip is None else learn_report.claim_beats(tip, ("pilco", "gr"), ("tp", "lr")),
+                     None if tip is None else claim_beats(tip, ("pilco", "gr"), ("tp", "lr")),
                      "learn_cartpole_tip_k1"))
     return findings
 

@@ -5,7 +5,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import learn, learn_report, methods, records, scenario
+from harness import learn, methods, records, scenario
+from harness.success import otsu_threshold, wilson_interval
 
 TINY = ["--preset", "quick", "--repeats", "3", "--batch", "2", "--learned-trials", "1", "--optimiser-steps", "2", "--particles", "4", "--eval-runs", "2",
         "--pilco-steps", "2", "--gp-steps", "3"]
@@ -226,10 +227,10 @@ def test_the_per_run_fixed_noise_methods_keep_one_optimisation_key_for_the_whole
 
 def test_success_statistics():
     bimodal = np.array([3.1, 2.9, 3.4, 27.0, 29.5, 28.8, 2.5])
-    assert 3.4 < learn_report.otsu_threshold(bimodal) < 27.0
-    low, high = learn_report.wilson_interval(8, 10)
+    assert 3.4 < otsu_threshold(bimodal) < 27.0
+    low, high = wilson_interval(8, 10)
     assert low == pytest.approx(0.4902, abs=1e-4) and high == pytest.approx(0.9433, abs=1e-4)  # textbook values
-    assert learn_report.wilson_interval(0, 10)[0] == pytest.approx(0.0, abs=1e-12)
+    assert wilson_interval(0, 10)[0] == pytest.approx(0.0, abs=1e-12)
 
 
 def test_a_batched_learning_run_is_each_seed_run_alone():

@@ -6,6 +6,10 @@ import pandas as pd
 import pytest
 
 from harness import learn_report, methods
+from harness.claims import ordering_lines, partial
+from harness.success import (ROBUSTNESS, SCALES, compute_hours, final_evaluations, inside, otsu_threshold,
+                             otsu_thresholds, rates_at_scales, retained_fraction_p, success_rows, success_table,
+                             wilson_interval, with_labels)
 
 OPTIONS = "preset=pipps,horizon=30,cost_type=angle"
 WIN, FAIL = 5.0, 30.0  # final costs of a learned and a failed run: Otsu's cut falls at 17.5 between them
@@ -33,7 +37,7 @@ def wins(method: str, successes: int, n: int = 10, k: float = 1.0) -> dict:
 
 
 def test_the_papers_rate_is_inside_or_outside_the_wilson_interval():
-    success = learn_report.success_rows(rows_of({**wins("tp", 7), **wins("pilco", 7), **wins("lr_plain", 7)}))
+    success = success_rows(rows_of({**wins("tp", 7), **wins("pilco", 7), **wins("lr_plain", 7)}))
     by_method = success.set_index("method")
     assert list(success.method) == ["pilco", "lr_plain", "tp"]  # the paper's column order
     # 7 of 10, by hand (z = 1.96; the report's exact 1.959964 moves the ends by 7e-6):
@@ -45,21 +49,21 @@ def test_the_papers_rate_is_inside_or_outside_the_wilson_interval():
     assert (by_method.loc["tp", "paper"], by_method.loc["tp", "inside"]) == (0.99, "no")
     assert (by_method.loc["pilco", "paper"], by_method.loc["pilco", "inside"]) == (0.79, "yes")
     assert np.isnan(by_method.loc["lr_plain", "paper"]) and by_method.loc["lr_plain", "inside"] == "-"
-    per_run = learn_report.success_rows(rows_of(wins("rp_fs_run", 7))).set_index("method")
+    per_run = success_rows(rows_of(wins("rp_fs_run", 7))).set_index("method")
     assert per_run.loc["rp_fs_run", "paper"] == 0.23  # the other reading of RP_FS, beside RP_FS's rate
     # 7 of 10 against 99 of 100: [[7, 3], [99, 1]], two-sided Fisher exact p = 0.002115
     assert by_method.loc["tp", "paper_p"] == pytest.approx(0.002115, rel=1e-3)
     assert np.isnan(by_method.loc["lr_plain", "paper_p"])
-    assert learn_report.inside(0.3968, 0.3968, 0.8922) == "yes"  # the ends belong to the interval
-    table, thresholds = learn_report.success_table(rows_of({**wins("tp", 7), **wins("pilco", 7)}))
+    assert inside(0.3968, 0.3968, 0.8922) == "yes"  # the ends belong to the interval
+    table, thresholds = success_table(rows_of({**wins("tp", 7), **wins("pilco", 7)}))
     assert table.loc[("cartpole", "angle", 1.0), "tp"] == "0.70 [0.40, 0.89] n=10 (paper 0.99)"
     assert thresholds == {("cartpole", "angle", ""): pytest.approx(17.5)}
 
 
 def robustness(rows: pd.DataFrame) -> list[str]:
     """The report's robustness lines of ``rows``."""
-    thresholds = learn_report.otsu_thresholds(learn_report.final_evaluations(rows))
-    return learn_report.robustness_lines(learn_report.rates_at_scales(rows), thresholds)
+    thresholds = otsu_thresholds(final_evaluations(rows))
+    return learn_report.robustness_lines(rates_at_scales(rows), thresholds)
 
 
 def test_threshold_robustness_reports_flips_only_where_a_final_cost_lies_within_the_margin():
@@ -76,7 +80,7 @@ def test_threshold_robustness_reports_flips_only_where_a_final_cost_lies_within_
     # 5 of 10: [0.24, 0.76] leaves out the paper's 0.79
     assert ("- Inside/outside verdicts against the paper that change: 1 (cartpole, angle, k = 1, pilco: "
             "no / yes / yes).") in moved
-    assert learn_report.SCALES == (1 - learn_report.ROBUSTNESS, 1.0, 1 + learn_report.ROBUSTNESS)
+    assert SCALES == (1 - ROBUSTNESS, 1.0, 1 + ROBUSTNESS)
 
 
 def test_compute_time_counts_each_batch_once():
@@ -85,7 +89,7 @@ def test_compute_time_counts_each_batch_once():
     timed = [("tp", 0, 5.0, 250.0), ("tp", 1, 5.0, 250.0), ("tp", 2, 4.0, 200.0), ("pilco", 0, 3.0, 120.0)]
     rows = pd.DataFrame([r for method, repeat, first, last in timed
                          for r in (row(method, repeat, 0, seconds=first), row(method, repeat, 1, WIN, last))])
-    hours = learn_report.compute_hours(rows)
+    hours = compute_hours(rows)
     assert list(hours.index) == ["pilco", "tp", "total"]
     assert hours.repeats.tolist() == [1, 3, 4]
     assert hours.hours.tolist() == pytest.approx([120 / 3600, 450 / 3600, 570 / 3600])
@@ -94,7 +98,7 @@ def test_compute_time_counts_each_batch_once():
 
 def orderings(finals: dict) -> list[str]:
     """The report's ordering lines of ``finals``."""
-    return learn_report.ordering_lines(learn_report.success_rows(rows_of(finals)))
+    return ordering_lines(success_rows(rows_of(finals)))
 
 
 def test_orderings_hold_significantly_or_are_not_measured():
@@ -131,8 +135,8 @@ def test_degradation_and_worst_method_claims():
                         "the lowest other, PILCO 0.90 [0.60, 0.98] n=10: holds on the point estimates; significant at "
                         "0.05 (two-sided Fisher exact p = 0.0198, the largest of 4: RP_FS vs PILCO).")
     assert "holds on the point estimates; not significant at 0.05, so undecided" in lines[3]  # k = 16: RP_FS = RP = 0
-    success = learn_report.success_rows(rows_of(finals)).set_index(["method", "k"])
-    equal = learn_report.retained_fraction_p(*(success.loc[key] for key in [("lr", 1.0), ("lr", 16.0),
+    success = success_rows(rows_of(finals)).set_index(["method", "k"])
+    equal = retained_fraction_p(*(success.loc[key] for key in [("lr", 1.0), ("lr", 16.0),
                                                                           ("tp", 1.0), ("tp", 16.0)]))
     assert equal == pytest.approx(1.0)
 
@@ -144,7 +148,7 @@ def test_claims_name_the_missing_methods_of_the_paper_and_are_whole_without_them
     assert whole.startswith("- (c) RP_FS is the worst method (cartpole, angle, k = 1): RP_FS 0.20 [0.06, 0.51] n=10")
     assert "partial" not in whole and "significant at 0.05" in whole
     present = ["rp_fs", "tp", "pilco", "rp", "gr", "lr"]
-    assert learn_report.partial(present, ("rp_fs",)) == "partial, GR_FS not measured: "
+    assert partial(present, ("rp_fs",)) == "partial, GR_FS not measured: "
 
 
 def test_invalid_runs_take_no_part_in_the_threshold():
@@ -152,16 +156,16 @@ def test_invalid_runs_take_no_part_in_the_threshold():
     to 23 (TP 10 of 10) if they were pooled. A file of invalid runs alone is cut on its own costs."""
     tp = {("tp", 1.0): [5.0] * 5 + [16.0] * 5}
     invalid = {("gr_xi_eq_eps", 1.0): [30.0] * 10}
-    assert learn_report.otsu_threshold(np.array(tp["tp", 1.0] + invalid["gr_xi_eq_eps", 1.0])) == 23.0
-    success = learn_report.success_rows(rows_of({**tp, **invalid})).set_index("method")
+    assert otsu_threshold(np.array(tp["tp", 1.0] + invalid["gr_xi_eq_eps", 1.0])) == 23.0
+    success = success_rows(rows_of({**tp, **invalid})).set_index("method")
     assert success.loc["tp", "wins"] == 5 and success.loc["gr_xi_eq_eps", "wins"] == 0
-    final = learn_report.final_evaluations(rows_of({**tp, **invalid}))
-    assert learn_report.otsu_thresholds(final) == {("cartpole", "angle", ""): 10.5}
+    final = final_evaluations(rows_of({**tp, **invalid}))
+    assert otsu_thresholds(final) == {("cartpole", "angle", ""): 10.5}
     line = learn_report.threshold_lines(final, {("cartpole", "angle", ""): 10.5})[0]
     assert "the 10 final costs of INVALID runs are not pooled" in line and "cut of the 10 pooled" in line
     assert learn_report.invalid_lines(final)[0].startswith("- `gr_xi_eq_eps`: INVALID (its costs not in the")
-    alone = learn_report.final_evaluations(rows_of({("gr_xi_eq_eps", 1.0): [5.0] * 5 + [16.0] * 5}))
-    assert learn_report.otsu_thresholds(alone) == {("cartpole", "angle", ""): 10.5}
+    alone = final_evaluations(rows_of({("gr_xi_eq_eps", 1.0): [5.0] * 5 + [16.0] * 5}))
+    assert otsu_thresholds(alone) == {("cartpole", "angle", ""): 10.5}
     assert "cut on these invalid costs alone" in learn_report.invalid_lines(alone)[0]
 
 
@@ -171,15 +175,15 @@ def test_other_readings_are_judged_at_the_tables_cut():
     is cut on its own costs."""
     tp = {("tp", 1.0): [5.0] * 5 + [16.0] * 5}
     reading = {("rp_fs_run", 1.0): [12.0] * 3 + [30.0] * 7}
-    assert learn_report.otsu_threshold(np.array(tp["tp", 1.0] + reading["rp_fs_run", 1.0])) != 10.5
-    final = learn_report.final_evaluations(rows_of({**tp, **reading}))
-    assert learn_report.otsu_thresholds(final) == {("cartpole", "angle", ""): 10.5}
-    success = learn_report.success_rows(rows_of({**tp, **reading})).set_index("method")
+    assert otsu_threshold(np.array(tp["tp", 1.0] + reading["rp_fs_run", 1.0])) != 10.5
+    final = final_evaluations(rows_of({**tp, **reading}))
+    assert otsu_thresholds(final) == {("cartpole", "angle", ""): 10.5}
+    success = success_rows(rows_of({**tp, **reading})).set_index("method")
     assert success.loc["tp", "wins"] == 5 and success.loc["rp_fs_run", "wins"] == 0  # 12 fails at the table's cut
     line = learn_report.threshold_lines(final, {("cartpole", "angle", ""): 10.5})[0]
     assert "the 10 final costs of other readings (rp_fs_run) are not pooled" in line and "cut of the 10 pooled" in line
-    alone = learn_report.final_evaluations(rows_of(reading))
-    assert learn_report.otsu_thresholds(alone) == {("cartpole", "angle", ""): 21.0}
+    alone = final_evaluations(rows_of(reading))
+    assert otsu_thresholds(alone) == {("cartpole", "angle", ""): 21.0}
 
 
 def test_the_report_carries_the_comparison_with_the_paper(tmp_path):
@@ -201,18 +205,18 @@ def test_the_report_carries_the_comparison_with_the_paper(tmp_path):
 def test_several_k_share_labels_and_the_threshold_is_per_cost_scale():
     """k is a column of its own, not part of a method's label; a task option that changes the
     cost's scale (``angle_cost_scale``) gets a threshold of its own, one that does not shares it."""
-    success = learn_report.success_rows(rows_of({**wins("tp", 9), **wins("tp", 4, k=16.0)}))
+    success = success_rows(rows_of({**wins("tp", 9), **wins("tp", 4, k=16.0)}))
     assert success.label.tolist() == ["tp", "tp"] and success.k.tolist() == [1.0, 16.0]
     halved = rows_of(wins("tp", 5)).assign(task_options=lambda r: r.task_options + ",angle_cost_scale=0.5",
                                           eval_mean=lambda r: r.eval_mean / 2)
     scaled = pd.concat([rows_of(wins("tp", 5)).assign(task_options=lambda r: r.task_options + ",angle_cost_scale=1"),
                         halved.assign(repeat=halved.repeat + 10, seed=halved.seed + 10)])
-    thresholds = learn_report.otsu_thresholds(learn_report.final_evaluations(scaled))
+    thresholds = otsu_thresholds(final_evaluations(scaled))
     assert thresholds == {("cartpole", "angle", " [angle_cost_scale=0.5]"): pytest.approx(8.75),
                           ("cartpole", "angle", " [angle_cost_scale=1]"): pytest.approx(17.5)}
     policies = pd.concat([scaled, scaled.assign(task_options=scaled.task_options + ",rbf=pseudo",
                                                 repeat=scaled.repeat + 20, seed=scaled.seed + 20)])
-    assert learn_report.otsu_thresholds(learn_report.final_evaluations(policies)) == thresholds  # not a scale
+    assert otsu_thresholds(final_evaluations(policies)) == thresholds  # not a scale
 
 
 
@@ -244,12 +248,12 @@ def test_the_final_evaluation_is_the_last_trials_row_of_each_complete_experiment
                          row("tp", 3, 0), row("tp", 3, 1, FAIL), row("tp", 3, 2, FAIL)]).assign(
         settings="learned_trials2-particles300")
     rows = pd.concat([rows, rows[rows.repeat == 1].assign(seed=101, eval_mean=FAIL)])  # the same repeat, --seed 100
-    final = learn_report.final_evaluations(rows).set_index(["repeat", "seed"]).eval_mean
+    final = final_evaluations(rows).set_index(["repeat", "seed"]).eval_mean
     assert np.isnan(final[(0, 0)]) and final[(1, 1)] == WIN and final[(1, 101)] == FAIL and final[(3, 3)] == FAIL
     assert (2, 2) not in final.index
-    assert learn_report.otsu_threshold(np.array([1.0, 2.0, 3.0, 20.0, 21.0, np.nan])) == pytest.approx(11.5)
-    assert learn_report.success_rows(rows).set_index("method").loc["tp", ["wins", "n"]].tolist() == [1, 4]
-    warning = learn_report.incomplete_lines(learn_report.with_labels(rows[rows.learned]))[0]
+    assert otsu_threshold(np.array([1.0, 2.0, 3.0, 20.0, 21.0, np.nan])) == pytest.approx(11.5)
+    assert success_rows(rows).set_index("method").loc["tp", ["wins", "n"]].tolist() == [1, 4]
+    warning = learn_report.incomplete_lines(with_labels(rows[rows.learned]))[0]
     assert warning.endswith("tp, k = 1, repeat 2 (1 trials).")
 
 
@@ -258,7 +262,7 @@ def test_a_batch_is_counted_once_by_the_clock_of_its_first_trial():
     still the batch's largest clock, counted once."""
     rows = pd.DataFrame([row("tp", 0, 0, seconds=5.0), row("tp", 0, 1, WIN, 250.0),
                          row("tp", 1, 0, seconds=5.0), row("tp", 2, 0, seconds=7.0), row("tp", 2, 1, WIN, 100.0)])
-    assert learn_report.compute_hours(rows).loc["tp", "hours"] == pytest.approx(350 / 3600)
+    assert compute_hours(rows).loc["tp", "hours"] == pytest.approx(350 / 3600)
 
 
 def test_a_significant_reversal_refutes_a_claim_and_a_method_without_success_loses_nothing():
@@ -270,12 +274,12 @@ def test_a_significant_reversal_refutes_a_claim_and_a_method_without_success_los
                        **wins("rp_fs", 0, k=16.0)})[1]
     assert "LR 0.00, TP 0.00, PILCO 0.89, RP_FS -: holds on the point estimates" in never
     assert never.endswith("the largest of 2: LR vs PILCO).")  # RP_FS, with nothing to lose, is left out
-    assert learn_report.wilson_interval(0, 11)[0] == 0.0 and learn_report.wilson_interval(21, 21)[1] == 1.0
+    assert wilson_interval(0, 11)[0] == 0.0 and wilson_interval(21, 21)[1] == 1.0
 
 
 def test_nonfinite_steps_are_flagged_with_the_float32_cause_only_under_float32_rollouts():
     rows = rows_of({**wins("tp", 1, n=2), **wins("rp", 1, n=2)})
-    learned = learn_report.with_labels(rows[rows.learned])
+    learned = with_labels(rows[rows.learned])
     assert learn_report.nonfinite_lines(learned) == [
         "Non-finite gradient estimates: none in the 4 learned trials that count them."]
     learned.loc[learned.method == "rp", "nonfinite_steps"] = [3.0, 0.0]
@@ -298,6 +302,6 @@ def test_claim_d_and_the_tip_cost_claim():
     assert not [line for line in orderings(wins("tp", 5)) if line.startswith("- (d)")]  # no k = 0.01 cell
     tip = rows_of({**wins("pilco", 9), **wins("gr", 8), **wins("tp", 2), **wins("lr", 1)})
     tip = tip.assign(cost="tip", task_options=tip.task_options.str.replace("cost_type=angle", "cost_type=tip"))
-    [line] = [line for line in learn_report.ordering_lines(learn_report.success_rows(tip))
+    [line] = [line for line in ordering_lines(success_rows(tip))
               if line.startswith("- Tip cost")]
     assert "holds on the point estimates; significant at 0.05" in line and line.endswith("the largest of 4: GR vs TP).")

@@ -30,7 +30,7 @@ def test_the_verdict_rules():
 
 def test_the_learning_claims_come_from_the_csvs_once_they_are_in_reports(tmp_path):
     """With no CSV a claim is "not run yet"; with the k = 0.01 column's CSV, claim (d) is evaluated from it
-    (``learn_report.claim_beats``), and claim (b) waits for a second k."""
+    (``claims.claim_beats``), and claim (b) waits for a second k."""
     from test_learn_report import rows_of, wins
 
     assert [finding for _, _, finding, _ in summary.learning_findings(str(tmp_path))] == [None, None, None]
