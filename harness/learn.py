@@ -221,7 +221,10 @@ def keep_final_states(args: Args, method: str, repeats: list[int], theta, data: 
         returns = np.array([row["trial_return"] for row in rows if row["repeat"] == repeat])
         path = final_state_path(args, method, repeat)
         save_scenario(dict(scenario=Scenario(own(data), own(posterior), own(theta), returns), provenance=provenance(),
-                           meta=dict(row_key(args, task, method, repeat), code_version=code_version())), path)
+                           meta=dict(row_key(args, task, method, repeat), code_version=code_version(),
+                                     description=f"the final policy, data and GP of {method}'s learning run, repeat "
+                                                 f"{repeat} (seed {args.seed + repeat}) of {os.path.basename(args.stem)} "
+                                                 f"at settings {args.settings_name(method)}")), path)
         print(f"  {method} repeat {repeat}: final state kept in {path}.{{npz,json}}", file=sys.stderr, flush=True)
 
 
