@@ -130,7 +130,7 @@ def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods
             + [(m, "float32", jnp.float32, "direct", NUM_INDUCING) for m in fitc_float32_methods])
     rows = []
     for index, (method, dtype_name, dtype, form, inducing) in enumerate(runs):
-        steps = settings["pilco_steps"] if METHODS[method].optimiser == "lbfgs" else settings["optimiser_steps"]
+        steps = METHODS[method].steps(settings)
         chosen = posteriors_fitc if inducing else posteriors
         step_s, compile_s = {}, []
         for t in TIMED_TRIALS:

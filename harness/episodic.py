@@ -103,43 +103,122 @@ def optimise_policy(problem: Problem, theta, key: jax.Array, *, estimator, num_s
     return PolicyOptimisation(theta, values, jnp.sum(~finite))
 
 
+class LbfgsCarry(NamedTuple):
+    """The loop state of ``lbfgs_step``: the iterate, optax's L-BFGS state, and the best finite
+    iterate so far with its value."""
+
+    theta: Any
+    state: Any
+    best: Any
+    best_value: jax.Array
+
+
+def lbfgs_start(solver, theta) -> LbfgsCarry:
+    return LbfgsCarry(theta, solver.init(theta), theta, jnp.asarray(jnp.inf, jax.tree.leaves(theta)[0].dtype))
+
+
+def lbfgs_step(solver, objective: Callable) -> Callable:
+    """``step(carry) -> (carry, (value, finite))``: one L-BFGS step with optax's zoom line search on
+    ``objective`` (theta -> scalar), keeping the best finite iterate (a NaN step cannot lose
+    progress); ``finite``: whether the value and gradient at the iterate were finite."""
+    value_and_grad = optax.value_and_grad_from_state(objective)
+
+    def step(carry: LbfgsCarry):
+        value, grad = value_and_grad(carry.theta, state=carry.state)
+        updates, state = solver.update(grad, carry.state, carry.theta, value=value, grad=grad, value_fn=objective)
+        better = jnp.isfinite(value) & (value < carry.best_value)
+        best = jax.tree.map(lambda b, t: jnp.where(better, t, b), carry.best, carry.theta)
+        return (LbfgsCarry(optax.apply_updates(carry.theta, updates), state, best,
+                           jnp.where(better, value, carry.best_value)), (value, is_finite_tree(value, grad)))
+
+    return step
+
+
+def lbfgs_result(carry: LbfgsCarry, last_value: jax.Array, values: jax.Array, nonfinite_steps) -> PolicyOptimisation:
+    """The last iterate if its value ``last_value`` beats the best one's, else the best."""
+    theta = jax.tree.map(lambda b, t: jnp.where(last_value < carry.best_value, t, b), carry.best, carry.theta)
+    return PolicyOptimisation(theta, values, nonfinite_steps)
+
+
 @functools.lru_cache(maxsize=None)
 def pilco_optimiser(num_steps: int):
-    """``optimise(problem, theta, key) -> PolicyOptimisation``: L-BFGS with a zoom line search on
-    PILCO's deterministic J; the best finite iterate is kept (a NaN step cannot lose progress),
-    and the steps whose value or gradient was not finite are counted."""
+    """``optimise(problem, theta, key) -> PolicyOptimisation``: ``num_steps`` L-BFGS steps with a zoom
+    line search on PILCO's deterministic J (``lbfgs_step``)."""
     solver = optax.lbfgs()
 
     @jax.jit
     def optimise(problem, theta, key):
         del key
         objective = lambda th: pilco_objective(problem, th)[0]  # noqa: E731
-        value_and_grad = optax.value_and_grad_from_state(objective)
+        step = lbfgs_step(solver, objective)
 
-        def step(carry, index):
-            theta, state, best, best_value = carry
+        def scan_step(carry, index):
             report_progress(index, num_steps)
-            value, grad = value_and_grad(theta, state=state)
-            updates, state = solver.update(grad, state, theta, value=value, grad=grad, value_fn=objective)
-            better = jnp.isfinite(value) & (value < best_value)
-            best = jax.tree.map(lambda b, t: jnp.where(better, t, b), best, theta)
-            finite = is_finite_tree(value, grad)
-            return (optax.apply_updates(theta, updates), state, best, jnp.where(better, value, best_value)), (value, finite)
+            return step(carry)
 
-        init = (theta, solver.init(theta), theta, jnp.asarray(jnp.inf, jax.tree.leaves(theta)[0].dtype))
-        (last, _, best, best_value), (values, finite) = jax.lax.scan(step, init, jnp.arange(num_steps))
-        last_value = objective(last)
-        theta = jax.tree.map(lambda b, t: jnp.where(last_value < best_value, t, b), best, last)
-        return PolicyOptimisation(theta, values, jnp.sum(~finite))
+        carry, (values, finite) = jax.lax.scan(scan_step, lbfgs_start(solver, theta), jnp.arange(num_steps))
+        return lbfgs_result(carry, objective(carry.theta), values, jnp.sum(~finite))
 
     return optimise
 
 
-def policy_optimiser(estimator_name: str, num_steps: int, num_particles: int):
-    """``optimise(problem, theta, key) -> PolicyOptimisation``: PILCO's L-BFGS for "pilco", else
-    ``num_steps`` steps of the paper's optimiser with that estimator and ``num_particles``."""
+LINESEARCH_STEPS = 20
+"""optax's default bound on the zoom line search's evaluations per L-BFGS step."""
+
+
+@functools.lru_cache(maxsize=None)
+def fixed_noise_lbfgs_optimiser(estimator_name: str, max_evaluations: int, num_particles: int):
+    """``optimise(problem, theta, key) -> PolicyOptimisation``: the paper's "Deterministic optimizer"
+    for a fixed-noise estimator (RP_FS, GR_FS): L-BFGS with a zoom line search (``lbfgs_step``) on
+    its objective under ``key``, J(theta) = mean return of ``num_particles`` particles (deterministic;
+    its autodiff gradient is the estimator's), for at most ``max_evaluations`` evaluations of J and
+    its gradient (the paper's "600 policy evaluations between each trial"): a step starts only while
+    its line search, up to ``LINESEARCH_STEPS`` evaluations, fits in what is left. ``values`` holds
+    each step's J (NaN after the last step)."""
+    estimator = estimators.make(estimator_name)
+    if not getattr(estimator, "fixes_noise", False):
+        raise ValueError(f"the deterministic optimiser needs a fixed-noise estimator (rp_fs, gr_fs); got "
+                         f"{estimator_name!r}")
+    if max_evaluations < 1 + LINESEARCH_STEPS:
+        raise ValueError(f"the deterministic optimiser needs at least {1 + LINESEARCH_STEPS} evaluations per "
+                         f"trial (one L-BFGS step); got {max_evaluations}")
+    solver = optax.lbfgs(linesearch=optax.scale_by_zoom_linesearch(LINESEARCH_STEPS, initial_guess_strategy="one"))
+
+    @jax.jit
+    def optimise(problem, theta, key):
+        objective = lambda th: estimator(problem, th, key, num_particles).value  # noqa: E731
+        step = lbfgs_step(solver, objective)
+
+        def go_on(loop):
+            _, _, _, evaluations, _, _ = loop
+            return evaluations + LINESEARCH_STEPS <= max_evaluations
+
+        def loop_step(loop):
+            carry, index, values, evaluations, finite_steps, all_steps = loop
+            report_progress(index, max_evaluations)  # "step N/M": N steps of at most M
+            carry, (value, finite) = step(carry)
+            spent = optax.tree.get(carry.state, "num_linesearch_steps")
+            return (carry, index + 1, values.at[index].set(value), evaluations + spent,
+                    finite_steps + finite, all_steps + 1)
+
+        nan_values = jnp.full((max_evaluations,), jnp.nan, jax.tree.leaves(theta)[0].dtype)
+        loop = (lbfgs_start(solver, theta), 0, nan_values, 1, 0, 0)  # the first step's J at theta: 1 evaluation
+        carry, _, values, _, finite_steps, all_steps = jax.lax.while_loop(go_on, loop_step, loop)
+        # the line search's value at the last iterate: no evaluation past the budget
+        return lbfgs_result(carry, optax.tree.get(carry.state, "value"), values, all_steps - finite_steps)
+
+    return optimise
+
+
+def policy_optimiser(estimator_name: str, num_steps: int, num_particles: int, quasi_newton: bool = False):
+    """``optimise(problem, theta, key) -> PolicyOptimisation``: PILCO's L-BFGS for "pilco"; with
+    ``quasi_newton``, L-BFGS on a fixed-noise estimator's objective for ``num_steps`` evaluations
+    (``fixed_noise_lbfgs_optimiser``); else ``num_steps`` steps of the paper's optimiser with that
+    estimator and ``num_particles``."""
     if estimator_name == "pilco":
         return pilco_optimiser(num_steps)
+    if quasi_newton:
+        return fixed_noise_lbfgs_optimiser(estimator_name, num_steps, num_particles)
     estimator = estimators.make(estimator_name)
 
     def optimise(problem, theta, key):

@@ -179,8 +179,9 @@ class Args:
 
     def float32_rollouts(self, method: str) -> bool:
         """Whether ``method`` optimises on float32 particle rollouts (``rollout_float32``: the
-        particle methods, with the GP trained and factorised in float64; PILCO stays float64)."""
-        return self.rollout_float32 and METHODS[method].optimiser != "lbfgs"
+        particle methods under the paper's SGD, with the GP trained and factorised in float64; the
+        L-BFGS methods, PILCO and the fixed-noise ones, stay float64)."""
+        return self.rollout_float32 and METHODS[method].optimiser == "pipps_sgd"
 
     @property
     def stem(self) -> str:
@@ -233,8 +234,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     continuing from the batch's checkpoint if there is one; returns a row per repeat and trial
     (progress on stderr)."""
     task, settings, chosen = args.make_task(), args.settings, METHODS[method]
-    steps = settings["pilco_steps"] if chosen.optimiser == "lbfgs" else settings["optimiser_steps"]
-    optimise = policy_optimiser(chosen.estimator, steps, settings["particles"])
+    optimise = policy_optimiser(chosen.estimator, chosen.steps(settings), settings["particles"], chosen.quasi_newton)
     if args.float32_rollouts(method):
         optimise = in_precision(optimise, jnp.float32)
     problem = task_problem(task, gp.GPModel(task), **chosen.overrides)

@@ -24,13 +24,16 @@ class Method:
     estimator: its ``estimators.REGISTRY`` name; override_pairs: ``estimators.base.Problem`` fields
     it changes, as (name, value) pairs (``overrides`` as a dict); reads: the paper's method that this one reads otherwise
     (a reading), or ""; noise_fixed_per_run: the fixed-noise estimators keep one optimisation key
-    for the whole run instead of one per trial; invalid: why rows of this name measure no method of
+    for the whole run instead of one per trial; quasi_newton: a fixed-noise estimator optimised by
+    L-BFGS with a line search on its fixed-noise objective (the paper's "Deterministic optimizer",
+    ``harness.episodic.fixed_noise_lbfgs_optimiser``) instead of the paper's SGD; invalid: why rows of this name measure no method of
     the paper ("" for a valid method; an invalid name cannot be run)."""
 
     estimator: str
     override_pairs: tuple[tuple[str, float], ...] = ()
     reads: str = ""
     noise_fixed_per_run: bool = False
+    quasi_newton: bool = False
     invalid: str = ""
 
     @property
@@ -40,8 +43,17 @@ class Method:
 
     @property
     def optimiser(self) -> str:
-        """"lbfgs" (PILCO's deterministic objective) or "pipps_sgd" (the paper's optimiser)."""
-        return "lbfgs" if self.estimator == "pilco" else "pipps_sgd"
+        """"lbfgs" (PILCO's deterministic objective), "lbfgs_fixed_noise" (``quasi_newton``) or
+        "pipps_sgd" (the paper's optimiser)."""
+        if self.estimator == "pilco":
+            return "lbfgs"
+        return "lbfgs_fixed_noise" if self.quasi_newton else "pipps_sgd"
+
+    def steps(self, settings: dict) -> int:
+        """Its optimiser's budget per trial in a learning preset's ``settings``: PILCO's
+        ``pilco_steps`` L-BFGS steps, else ``optimiser_steps`` (SGD steps, or evaluations of the
+        fixed-noise objective under L-BFGS)."""
+        return settings["pilco_steps"] if self.optimiser == "lbfgs" else settings["optimiser_steps"]
 
     @property
     def is_reading(self) -> bool:
@@ -62,6 +74,8 @@ METHODS: dict[str, Method] = {
     "pilco-sigma_n": Method("pilco", (("noise_var_scale", 0.0),), reads="pilco"),
     "rp_fs_run": Method("rp_fs", reads="rp_fs", noise_fixed_per_run=True),
     "gr_fs_run": Method("gr_fs", reads="gr_fs", noise_fixed_per_run=True),
+    "rp_fs_lbfgs": Method("rp_fs", reads="rp_fs", quasi_newton=True),
+    "gr_fs_lbfgs": Method("gr_fs", reads="gr_fs", quasi_newton=True),
     "rp_fs_seed0": Method("rp_fs", invalid="every repeat and trial optimised on the same particles (noise seed 0: "
                                            "the fixed-seed bug fixed in issue 18); not the paper's RP_FS"),
     "gr_fs_seed0": Method("gr_fs", invalid="every repeat and trial optimised on the same particles (noise seed 0: "
@@ -79,7 +93,9 @@ variance propagated without the learned noise sn^2 (``gp/gp0d.m``, ``base/propag
 ``pilco`` adds sn^2 to every next state as the particle methods sample it. The paper's RP_FS and
 GR_FS fix "the random seed" without saying for how long: ``rp_fs`` and ``gr_fs`` fix the noise
 for one trial's policy optimisation (``estimators.base.FixedNoise``), ``rp_fs_run`` and
-``gr_fs_run`` for the whole learning run (``learning_run(optimisation_key_per_run=True)``)."""
+``gr_fs_run`` for the whole learning run (``learning_run(optimisation_key_per_run=True)``). The paper
+optimises them by "quasi-Newton optimizers, such as BFGS" with "600 policy evaluations between each
+trial": ``rp_fs_lbfgs`` and ``gr_fs_lbfgs`` (per-trial noise, L-BFGS, float64 as PILCO's)."""
 
 DEFAULT_METHODS = "pilco,rp,rp_fs,gr,gr_fs,lr,tp,tp-sigma_f,tp+sigma_n"
 """The paper's columns."""

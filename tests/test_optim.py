@@ -1,6 +1,7 @@
 """The paper's RMSprop-like optimiser."""
 
 import jax.numpy as jnp
+import pytest
 import numpy as np
 import optax
 
@@ -90,3 +91,36 @@ def test_a_float32_particle_gradient_past_1e19_still_takes_its_step():
     g = np.asarray(estimate.grad, np.float64)
     np.testing.assert_allclose(updates, -5e-4 * g / np.sqrt(g**2 + expected_var), rtol=1e-6)
     assert abs(float(updates[1])) > 1e-5  # the exploded parameter moves (it moved 0 in float32)
+
+
+def test_the_deterministic_optimiser_keeps_to_its_evaluation_budget_and_descends(monkeypatch):
+    """L-BFGS on RP_FS's fixed-noise objective (``fixed_noise_lbfgs_optimiser``), 50 evaluations: every
+    evaluation of the objective is counted (a callback inside it) and none is past the budget; the
+    objective at the returned theta is the lowest of its steps' and below theta0's; a method whose noise
+    is not fixed is refused."""
+    import jax
+
+    import estimators
+    from harness import bench, episodic
+
+    jax.config.update("jax_enable_x64", True)
+    _, problem, theta, _ = bench.bench_problem(bench.Args(trials=1, gp_steps=5))
+    inner, calls = estimators.make("rp_fs"), []
+
+    def counted(problem, theta, key, num_particles):
+        estimate = inner(problem, theta, key, num_particles)
+        jax.debug.callback(lambda: calls.append(1))
+        return estimate
+
+    counted.fixes_noise = True
+    monkeypatch.setattr(estimators, "make", lambda name: counted if name == "counted_rp_fs" else inner)
+    key = jax.random.key(3)
+    result = episodic.fixed_noise_lbfgs_optimiser("counted_rp_fs", 50, 8)(problem, theta, key)
+    values = np.asarray(result.values)
+    steps = values[np.isfinite(values)]
+    assert 0 < len(calls) <= 50 and len(steps) >= 2 and int(result.nonfinite_steps) == 0
+    final = float(inner(problem, result.theta, key, 8).value)
+    assert final <= steps.min() + 1e-9 and final < steps[0]  # steps[0]: J at theta0
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match="fixed-noise estimator"):
+        episodic.fixed_noise_lbfgs_optimiser("rp", 50, 8)
