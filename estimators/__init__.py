@@ -2,8 +2,9 @@
 
 Every estimator is called as ``est(problem, theta, key, num_particles) -> Estimate`` (see
 ``estimators.base``); ``num_particles`` fixes shapes, so jit with it static. Named variants
-(``biw_lr_pairwise``, ``biw_lr_no_baseline``, ``tp_pairwise``) give the experiments' CLIs
-the BIW-LR baselines of ``estimators.likelihood_ratio`` by name.
+(``lr_is_baseline``, ``biw_lr_pairwise``, ``biw_lr_no_baseline``, ``tp_pairwise``) give the
+experiments' CLIs the baselines of ``estimators.likelihood_ratio`` by name (``lr_is_baseline``:
+LR with the importance-sampled baseline, as the paper's variance figure ran LR).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ REGISTRY: dict[str, Callable[..., object]] = {
     "gr": lambda **kw: Reparameterisation(gaussian_resampling=True, **kw),
     "gr_fs": lambda: FixedNoise(Reparameterisation(gaussian_resampling=True)),
     "lr": lambda **kw: LikelihoodRatio("lr", **kw),
+    "lr_is_baseline": lambda: LikelihoodRatio("lr", baseline="importance_sampled"),
     "biw_lr": lambda **kw: LikelihoodRatio("biw_lr", **kw),
     "biw_lr_pairwise": lambda: LikelihoodRatio("biw_lr", baseline="pairwise"),
     "biw_lr_no_baseline": lambda: LikelihoodRatio("biw_lr", baseline="none"),

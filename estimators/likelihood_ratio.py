@@ -22,6 +22,10 @@ The baselines (``baseline=``):
   (``pairwise_baseline``), each independent of the sample s_j it multiplies and with the
   same expectation for every j, as the paper proposes to remove the bias: the baseline
   term's expectation is then exactly 0. O(P^2 S) per step.
+- ``"importance_sampled"`` (LR; BIW-LR's leave-one-out is this already): LR with BIW-LR's
+  normalised importance-sampled leave-one-out baseline ``b_i`` (``importance_sampled_baseline``), the
+  baseline the paper's LR used in its variance figure ("used the importance sampled baseline").
+  ``b_i`` depends on the other particles' samples only, so LR stays unbiased.
 - ``"none"``: no baseline; both estimators are then exactly unbiased.
 """
 
@@ -118,14 +122,33 @@ def pairwise_baseline(zeta: Zeta, log_p: jax.Array, G: jax.Array,
     return jnp.where(has_partner[:, None], b, 0.0)
 
 
-BASELINES = ("leave_one_out", "pairwise", "none")
+BASELINES = ("leave_one_out", "pairwise", "importance_sampled", "none")
+
+
+def mixture_log_weights(zeta: Zeta, s: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``log p(s_j | zeta_i)`` and ``log c_ij = log p(s_j | zeta_i) - log sum_k p(s_j | zeta_k)``
+    (P, P) [i, j] each: sample j's density under particle i against the particles' mixture."""
+    log_p = log_density_matrix(zeta, s)
+    return log_p, log_p - jax.scipy.special.logsumexp(log_p, axis=0, keepdims=True)
+
+
+def importance_sampled_baseline(log_c: jax.Array, G: jax.Array) -> jax.Array:
+    """``b_i = sum_{j != i} c_ij G_j / sum_{j != i} c_ij`` (P,) from log c (P, P) and G (P,): the
+    other particles' cost-to-go weighted by how likely their samples are under particle i's
+    distribution; a softmax of log c_ij over j != i, finite even when every c_ij underflows."""
+    off_diagonal = jnp.where(jnp.eye(log_c.shape[0], dtype=bool), -jnp.inf, log_c)
+    return jax.nn.softmax(off_diagonal, axis=1) @ G
 
 
 def lr_statistics(zeta: Zeta, s: jax.Array, G: jax.Array, baseline: str = "leave_one_out"
                   ) -> tuple[ScoreStatistics, jax.Array]:
     """Statistics for ``W = diag(G - b)`` (b: the leave-one-out mean, which is also LR's
-    pairwise baseline, or 0 for "none"); returns them and the effective sample size P."""
-    weight = G if baseline == "none" else G - leave_one_out_baseline(G)
+    pairwise baseline, the importance-sampled one, or 0 for "none"); returns them and the
+    effective sample size P."""
+    if baseline == "importance_sampled":
+        weight = G - importance_sampled_baseline(mixture_log_weights(zeta, s)[1], G)
+    else:
+        weight = G if baseline == "none" else G - leave_one_out_baseline(G)
     r = s - zeta.mean
     return ScoreStatistics(zeta.mean, weight[:, None] * r**2, weight[:, None] * r, weight), jnp.asarray(
         G.shape[0], G.dtype)
@@ -136,15 +159,11 @@ def biw_statistics(zeta: Zeta, s: jax.Array, G: jax.Array, baseline: str = "leav
     """Statistics for the batch-importance-weighted W with ``baseline`` (module docstring);
     returns them and the mean over i of the effective sample size
     ``(sum_j c_ij)^2 / sum_j c_ij^2`` of particle i's weights."""
-    log_p = log_density_matrix(zeta, s)
-    log_c = log_p - jax.scipy.special.logsumexp(log_p, axis=0, keepdims=True)  # normalise over i
+    log_p, log_c = mixture_log_weights(zeta, s)
     c = jnp.exp(log_c)
     W = c * G[None, :]
-    if baseline == "leave_one_out":
-        # b_i = sum_{j != i} c_ij G_j / sum_{j != i} c_ij as a softmax of log c_ij over j != i:
-        # finite even when every c_ij (j != i) underflows (particles far apart).
-        off_diagonal = jnp.where(jnp.eye(c.shape[0], dtype=bool), -jnp.inf, log_c)
-        W = W - c * (jax.nn.softmax(off_diagonal, axis=1) @ G)[:, None]
+    if baseline in ("leave_one_out", "importance_sampled"):  # BIW-LR's leave-one-out is importance-sampled
+        W = W - c * importance_sampled_baseline(log_c, G)[:, None]
     elif baseline == "pairwise":
         W = W - c * pairwise_baseline(zeta, log_p, G)
     # A_i = sum_j W_ij (s_j - m_i)^2 and B_i = sum_j W_ij (s_j - m_i), expanded (centred) into

@@ -125,7 +125,7 @@ def check(args: Args) -> list[str]:
                   f"--points {line['points']} --box-stds {landscape['heatmap_box_side_sd']:g} "
                   "--estimators rp_fs,gr_fs,lr,tp --out reports/chaos",
                   f"    python -m harness.variance {flags} --delta-theta 0,{delta_max:g} "
-                  "--estimators rp,gr,lr,tp --out reports/chaos", ""]
+                  "--estimators rp,gr,lr,lr_is_baseline,tp --out reports/chaos", ""]
     else:
         lines += [f"**The rule fails at repeat {rule['repeat']}.** As the plan says, the next repeat of the same "
                   f"table is taken: set repeat = {rule['repeat'] + 1} in [theta0] and repeats = "

@@ -51,6 +51,7 @@ def relative_bias(grads):
         ("rp", {}),
         ("lr", {}),
         ("lr", {"baseline": "none"}),
+        ("lr", {"baseline": "importance_sampled"}),  # its baseline uses only the other particles' samples
         ("biw_lr", {"baseline": "none"}),  # without a baseline the mixture weighting is unbiased
         ("tp", {"weighting": "lr", "fixed_k": 0.3}),  # a fixed mix of unbiased estimators
         ("tp", {"weighting": "biw_lr", "fixed_k": 0.0}),
