@@ -46,7 +46,8 @@ PROGRESS_EVERY = 100
 
 def report_progress(step: jax.Array, num_steps: int) -> None:
     """From inside a jitted optimiser loop: a line on stderr every ``PROGRESS_EVERY`` steps
-    (once per step index: under ``vmap`` the callback runs once per seed)."""
+    (once per step index: under ``vmap`` the callback runs once per seed; with the seeds in turn,
+    ``learning_run(seeds_in_turn=True)``, each seed counts up in turn)."""
 
     def show(step):
         step = int(step)
@@ -279,7 +280,7 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
                  optimise: Callable[[Problem, Any, jax.Array], Any], gp_steps: int,
                  on_trial: Callable[[TrialRecord, gp.GPData], None] = lambda record, data: None,
                  batched: bool = False, trim_model: bool = False, fit_rows_held: bool = False,
-                 resume: RunState | None = None,
+                 seeds_in_turn: bool = False, resume: RunState | None = None,
                  num_inducing: int = 0, optimisation_key_per_run: bool = False):
     """The paper's episodic loop: the task's random trials, then ``num_learned`` times: fit the
     GP to all data (``gp_steps`` L-BFGS steps), ``theta = optimise(problem with the GP, theta,
@@ -300,6 +301,11 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
     training set and objective as the whole buffer, whose padding rows are inert, at
     O(rows^3) instead of O(capacity^3) per step of the fit. It changes the fit's round-off,
     which the closed loop can amplify.
+
+    ``seeds_in_turn`` (with ``batched``): optimise the seeds' policies one after another in one
+    program (``lax.map``) instead of vmapped together: each seed's optimisation is then the
+    unbatched program, which runs 6-15 % faster per seed than the vmapped one on the CPU (the
+    GP's per-seed matrices batch the particle products badly). The GP fits and trials stay vmapped.
 
     ``num_inducing``: once the data hold more rows, fit PILCO's FITC sparse GP with that many
     inducing inputs instead of the full GP (``models.sparse_gp.fitter``; 0: always the full GP).
@@ -339,7 +345,10 @@ def learning_run(task: Task, problem: Problem, key: jax.Array, num_learned: int,
             posterior = gp.truncate(posterior, whole_episodes)
         problem = dataclasses.replace(problem, model_params=posterior)
         optimisation_key = run_key("optimisation", 0 if optimisation_key_per_run else trial)
-        result = over_seeds(optimise)(problem, theta, optimisation_key)
+        if batched and seeds_in_turn:
+            result = jax.lax.map(lambda args: optimise(*args), (problem, theta, optimisation_key))
+        else:
+            result = over_seeds(optimise)(problem, theta, optimisation_key)
         theta = result.theta
         episode = policy_episode(run_key("trial", trial), theta)
         data = add(data, episode)

@@ -248,6 +248,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     # fit on the rows held (same objective, other round-off), except in a batch begun before that
     # option existed: a resumed batch computes what it began with
     fit_rows_held = saved.get("fit_rows_held", resume is None)
+    seeds_in_turn = saved.get("seeds_in_turn", resume is None)  # likewise: seeds optimised one after another
     if resume is not None:
         print(f"  {method} repeats {repeats[0]}-{repeats[-1]}: resuming after trial {resume.trials_done}/{num_trials}"
               f" ({checkpoint})", file=sys.stderr, flush=True)
@@ -275,7 +276,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
                              data_points=int(num_valid[i]), nonfinite_steps=float(nonfinite[i]), seconds=seconds,
                              code_version=code_version()))
         save_pickle(dict(state=RunState(record.trial + 1, record.theta, data), rows=rows, jax=JAX_VERSIONS,
-                         fit_rows_held=fit_rows_held), checkpoint)
+                         fit_rows_held=fit_rows_held, seeds_in_turn=seeds_in_turn), checkpoint)
         evaluation = f", evaluation mean {scores.mean():.2f}" if record.learned else ""
         if np.nansum(nonfinite) > 0:
             evaluation += f", NON-FINITE estimates in {nonfinite.astype(int).tolist()} optimiser steps"
@@ -289,7 +290,8 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
               f" returns {np.round(returns, 1).tolist()}{evaluation} ({seconds:.0f} s)", file=sys.stderr, flush=True)
 
     theta, data = learning_run(task, problem, run_keys, settings["learned_trials"], optimise, settings["gp_steps"],
-                               on_trial, batched=True, trim_model=True, fit_rows_held=fit_rows_held, resume=resume,
+                               on_trial, batched=True, trim_model=True, fit_rows_held=fit_rows_held,
+                               seeds_in_turn=seeds_in_turn, resume=resume,
                                num_inducing=args.gp_inducing, optimisation_key_per_run=chosen.noise_fixed_per_run)
     if args.keep_final:
         keep_final_states(args, method, repeats, theta, data, rows)

@@ -84,20 +84,20 @@ def test_a_batch_interrupted_between_trials_continues_after_its_last_trial(tmp_p
     monkeypatch.setattr(learn, "evaluate_policy", real)
     [checkpoint] = carried.iterdir()  # as one written before rows carried their code version
     saved = records.load_pickle(str(checkpoint))
-    assert saved["jax"] == learn.JAX_VERSIONS and saved["fit_rows_held"]  # a new batch fits on the rows held
+    assert saved["jax"] == learn.JAX_VERSIONS and saved["fit_rows_held"] and saved["seeds_in_turn"]  # a new batch's
     records.save_pickle(dict(state=saved["state"],  # and before checkpoints named their jax version and fit
                              rows=[{n: v for n, v in r.items() if n != "code_version"} for r in saved["rows"]]),
                         str(checkpoint))
     capsys.readouterr()
-    real_run, fit_rows_held = learn.learning_run, []
+    real_run, loop_options = learn.learning_run, []
 
     def recording_run(*args, **kwargs):
-        fit_rows_held.append(kwargs["fit_rows_held"])
+        loop_options.append((kwargs["fit_rows_held"], kwargs["seeds_in_turn"]))
         return real_run(*args, **kwargs)
 
     monkeypatch.setattr(learn, "learning_run", recording_run)
     learn.main(argv + ["--out", str(out)])
-    assert fit_rows_held == [False]  # a checkpoint from before the option resumes with the fit it began with
+    assert loop_options == [(False, False)]  # a checkpoint from before the options resumes as it began
     progress = capsys.readouterr().err
     assert "tp repeats 0-1: resuming after trial 2/3" in progress and "trial 2/3," not in progress
     assert f"ran under unrecorded jax, this process under {learn.JAX_VERSIONS}" in progress
@@ -233,9 +233,11 @@ def test_success_statistics():
     assert wilson_interval(0, 10)[0] == pytest.approx(0.0, abs=1e-12)
 
 
-def test_a_batched_learning_run_is_each_seed_run_alone():
+@pytest.mark.parametrize("in_turn", [False, True])
+def test_a_batched_learning_run_is_each_seed_run_alone(in_turn):
     """learning_run(batched=True, trim_model=True) over two seeds is the same computation as
-    each seed alone on the whole buffer.
+    each seed alone on the whole buffer; also with the fit on the rows held and the seeds
+    optimised in turn (``learn``'s loop).
 
     The optimiser here is a plain gradient step: the paper's normalised steps g / sqrt(g^2 + V)
     turn round-off-sized gradients of uninformed parameters into full steps, which would
@@ -257,7 +259,8 @@ def test_a_batched_learning_run_is_each_seed_run_alone():
         return PolicyOptimisation(jax.tree.map(lambda t, g: t - 0.1 * g, theta, estimate.grad), estimate.value[None], 0)
 
     keys = jax.numpy.stack([jax.random.key(3), jax.random.key(4)])
-    theta_batch, data_batch = learning_run(task, problem, keys, 1, optimise, 5, batched=True, trim_model=True)
+    theta_batch, data_batch = learning_run(task, problem, keys, 1, optimise, 5, batched=True, trim_model=True,
+                                           fit_rows_held=in_turn, seeds_in_turn=in_turn)
     # Batching and trimming change round-off (GP predictions differ by ~1e-13); the gradient
     # through the model's 30-step rollout and the learned trial's closed loop amplify it (FTLE
     # ~0.3 per step, e^9 over 30 steps): 1e-6 bounds both, while a wrong key, buffer or
