@@ -191,22 +191,21 @@ def fixed_noise_lbfgs_optimiser(estimator_name: str, max_evaluations: int, num_p
         step = lbfgs_step(solver, objective)
 
         def go_on(loop):
-            _, _, _, evaluations, _, _ = loop
+            _, _, _, evaluations, _ = loop
             return evaluations + LINESEARCH_STEPS <= max_evaluations
 
         def loop_step(loop):
-            carry, index, values, evaluations, finite_steps, all_steps = loop
-            report_progress(index, max_evaluations)  # "step N/M": N steps of at most M
+            carry, steps, values, evaluations, finite_steps = loop
+            report_progress(steps, max_evaluations)  # "step N/M": N steps of at most M
             carry, (value, finite) = step(carry)
             spent = optax.tree.get(carry.state, "num_linesearch_steps")
-            return (carry, index + 1, values.at[index].set(value), evaluations + spent,
-                    finite_steps + finite, all_steps + 1)
+            return carry, steps + 1, values.at[steps].set(value), evaluations + spent, finite_steps + finite
 
         nan_values = jnp.full((max_evaluations,), jnp.nan, jax.tree.leaves(theta)[0].dtype)
-        loop = (lbfgs_start(solver, theta), 0, nan_values, 1, 0, 0)  # the first step's J at theta: 1 evaluation
-        carry, _, values, _, finite_steps, all_steps = jax.lax.while_loop(go_on, loop_step, loop)
+        loop = (lbfgs_start(solver, theta), 0, nan_values, 1, 0)  # the first step's J at theta: 1 evaluation
+        carry, steps, values, _, finite_steps = jax.lax.while_loop(go_on, loop_step, loop)
         # the line search's value at the last iterate: no evaluation past the budget
-        return lbfgs_result(carry, optax.tree.get(carry.state, "value"), values, all_steps - finite_steps)
+        return lbfgs_result(carry, optax.tree.get(carry.state, "value"), values, steps - finite_steps)
 
     return optimise
 
