@@ -12,12 +12,14 @@ delta theta = 1, 2, 4, ... until J(theta0 + delta d) exceeds ``extend_until_cost
 the covariance of ``VARIANCE_REPEATS`` estimates with independent keys (``harness.variance``).
 
 Writes ``{out}/chaos_scenario.md``: the rule, quoted from the plan, then the numbers, the verdict, and the
-commands of the landscape and variance reports at the scenario (or, if the rule fails, the repeat to try next).
+commands of the landscape and variance reports at the scenario (or, if the rule fails, the repeat to try next);
+and ``{out}/chaos_scenario.json``, the same numbers as plain data (``harness.summary`` reads it).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import sys
 import tomllib
@@ -31,6 +33,8 @@ from harness import scenario as scenario_lib
 from harness.cli import parse, run_command
 from harness.records import ROOT
 
+SCHEMA_VERSION = 1
+"""Version of chaos_scenario.json's layout."""
 VARIANCE_REPEATS = 30
 """Estimates behind each variance of the rule (``harness.variance``'s default repeats)."""
 MAX_DOUBLINGS = 12
@@ -78,8 +82,8 @@ def line_extent(where: scenario_lib.Setting, key, num_particles: int, above: flo
     return points, False
 
 
-def check(args: Args) -> list[str]:
-    """The report's lines (module docstring)."""
+def check(args: Args) -> tuple[list[str], dict]:
+    """The report's lines and its numbers (module docstring)."""
     with open(args.plan, "rb") as f:
         plan = tomllib.load(f)
     rule, line, landscape = plan["theta0"], plan["line"], plan["landscape"]
@@ -117,7 +121,12 @@ def check(args: Args) -> list[str]:
              f"- J along the line: {'; '.join(f'{j:.2f} at {d:g}' for d, j in points)}"
              + ("" if reached else f" (never above {line['extend_until_cost']:g} up to delta theta = "
                                    f"{points[-1][0]:g})") + ".", ""]
-    if low_cost and calm and reached:
+    numbers = dict(schema_version=SCHEMA_VERSION, plan=os.path.relpath(args.plan, ROOT), method=rule["method"],
+                   repeat=rule["repeat"], source=where.source, content=where.content, particles=particles,
+                   cost=cost0, max_cost=float(rule["max_cost"]), variance=variances,
+                   line=[dict(delta=d, cost=j) for d, j in points], line_reaches=reached,
+                   holds=bool(low_cost and calm and reached))
+    if numbers["holds"]:
         delta_max = points[-1][0]
         flags = f"--scenario-file {os.path.relpath(path, ROOT)} --seed {args.seed}"
         lines += ["**The rule holds: this is the scenario.** Its reports:", "",
@@ -131,16 +140,18 @@ def check(args: Args) -> list[str]:
                   f"table is taken: set repeat = {rule['repeat'] + 1} in [theta0] and repeats = "
                   f"{{ {rule['method']} = {rule['repeat'] + 2} }} in [[cells]], then rerun the sweep and this "
                   "command.", ""]
-    return lines
+    return lines, numbers
 
 
 def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", True)
-    lines = check(args)
+    lines, numbers = check(args)
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "chaos_scenario.md"), "w") as f:
         f.write("\n".join(lines))
+    with open(os.path.join(args.out, "chaos_scenario.json"), "w") as f:
+        json.dump(numbers, f, indent=1, sort_keys=True)
     print("\n".join(lines[-6:]), file=sys.stderr)
 
 

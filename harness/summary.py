@@ -20,6 +20,7 @@ Verdict rules:
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import sys
 from typing import NamedTuple
@@ -176,8 +177,25 @@ def reading_claims(reports: str, stem: str = "learn_cartpole_angle_k1") -> list[
             for r in success.itertuples() if r.method in read]
 
 
+def chaos_scenario_claims(reports: str) -> list[Claim]:
+    """A row for the curse-of-chaos scenario's rule (``harness.chaos``: chaos_scenario.json), if it was checked."""
+    path = os.path.join(reports, "chaos_scenario.json")
+    if not os.path.exists(path):
+        return []
+    with open(path) as f:
+        found = json.load(f)
+    rp, other = found["variance"]["rp"], {k: v for k, v in found["variance"].items() if k != "rp"}
+    [(name, value)] = other.items()
+    return [Claim(f"cartpole: a scenario at a policy that works ({found['method']} repeat {found['repeat']}, "
+                  f"{found['plan']}'s rule)", "implied: RP well-behaved at delta theta = 0",
+                  f"J {found['cost']:.2f} (at most {found['max_cost']:g}); RP / {name.upper()} variance "
+                  f"{rp / value:.2g}", "rule holds" if found["holds"] else "rule fails: next repeat",
+                  "[chaos_scenario](chaos_scenario.md)")]
+
+
 def all_claims(reports: str) -> list[Claim]:
     claims = [c for task in VARIANCE_COMMANDS for c in variance_claims(task, reports)]
+    claims += chaos_scenario_claims(reports)
     claims += [c for name, stem in LEARNING_TABLES.items() if os.path.exists(os.path.join(reports, stem + ".csv"))
                for c in learning_claims(name, stem, reports)]
     claims += reading_claims(reports)

@@ -2,12 +2,13 @@
 pinned scenario standing in for the source run's final state; and a gradient experiment started from a
 scenario file (``--scenario-file``)."""
 
+import json
 import os
 import shutil
 
 import pytest
 
-from harness import chaos, learn, records, sweep, variance
+from harness import chaos, learn, records, summary, sweep, variance
 
 PLAN = os.path.join(records.ROOT, "plans", "chaos_scenario.toml")
 PINNED = os.path.join(records.ROOT, "scenarios", "scenario_cartpole_27b490aadc97")
@@ -41,6 +42,11 @@ def test_the_rule_is_quoted_before_its_numbers_and_decides_the_verdict(tmp_path,
     assert "(the rule: at most 1): NOT met" in report and "The rule fails at repeat 0" in report
     assert "set repeat = 1 in [theta0]" in report and "harness.landscape" not in report
     assert "the scenario file" in report and "J along the line: " in report
+    numbers = json.loads((tmp_path / "chaos_scenario.json").read_text())
+    assert numbers["schema_version"] == chaos.SCHEMA_VERSION and not numbers["holds"] and numbers["max_cost"] == 1.0
+    assert f"{numbers['cost']:.2f} (the rule: at most 1): NOT met" in report
+    [row] = summary.chaos_scenario_claims(str(tmp_path))  # the claims table's row says the same
+    assert row.verdict == "rule fails: next repeat" and f"J {numbers['cost']:.2f}" in row.ours
 
 
 def test_a_gradient_experiment_starts_from_a_scenario_file(tmp_path):
