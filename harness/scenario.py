@@ -255,6 +255,10 @@ def from_file(path: str, task: str) -> tuple[Scenario, str]:
     if saved is None:
         raise ValueError(f"no scenario file {path}.npz and {path}.json (harness.learn --keep-final writes a "
                          "learning run's final state as one)")
+    made_under = saved["meta"].get("task_options")
+    if made_under is not None and made_under != tasks.describe(tasks.make(task)):
+        raise ValueError(f"{path}: made under task options {made_under}, but the gradient experiments run task "
+                         f"{task!r} with its defaults, {tasks.describe(tasks.make(task))}")
     described = f"{saved['meta']['description']}; " if "description" in saved["meta"] else ""
     return (jax.tree.map(jax.numpy.asarray, saved["scenario"]),
             f"{described}the scenario file {path}.{{npz,json}}, {describe_provenance(saved)}")

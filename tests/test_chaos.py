@@ -57,3 +57,10 @@ def test_a_gradient_experiment_starts_from_a_scenario_file(tmp_path):
     assert f"the scenario file {PINNED}.{{npz,json}}" in report and f"--scenario-file {PINNED}" in report
     with pytest.raises(ValueError, match="keep-final"):
         variance.main(["--scenario-file", str(tmp_path / "none"), "--out", out])
+    other = str(tmp_path / "k16")  # a learning run's final state under other task options is refused
+    shutil.copy(PINNED + ".npz", other + ".npz")
+    meta = json.loads(open(PINNED + ".json").read()) | {"task_options": "noise_k=16.0"}
+    with open(other + ".json", "w") as f:
+        json.dump(meta, f)
+    with pytest.raises(ValueError, match="made under task options noise_k=16.0"):
+        variance.main(["--scenario-file", other, "--out", out])
