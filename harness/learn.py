@@ -50,7 +50,7 @@ from harness.cli import check_sizes, parse, run_command, str_list
 from harness.episodic import RunState, evaluate_policy, in_precision, learning_run, policy_optimiser
 from harness.keys import stream
 from harness.methods import METHODS, runnable
-from harness.records import ResultTable, code_version, load_pickle, save_pickle
+from harness.records import ResultTable, code_version, load_legacy_pickle, load_state, save_state
 from harness.scenario import Scenario, provenance, save_scenario
 from models import gp, sparse_gp
 
@@ -198,8 +198,31 @@ def checkpoint_path(args: Args, method: str, repeats: list[int]) -> str:
     precision = "f64" if args.x64 else "f32"
     task_hash = hashlib.sha256(tasks.describe(args.make_task()).encode()).hexdigest()[:8]
     name = (f"{os.path.basename(args.stem)}_{method}_{args.settings_name(method)}_task{task_hash}_{precision}"
-            f"_seeds{seeds}.pkl")
+            f"_seeds{seeds}.npz")
     return os.path.join(args.checkpoints or os.path.join(args.out, ".cache", "learn"), name)
+
+
+def save_checkpoint(path: str, state: RunState, meta: dict) -> None:
+    """A batch's state as plain data (``records.save_state``): the arrays ``data.*`` and ``theta.I`` (the I-th
+    leaf of theta; each with a leading repeat axis) and, as JSON, ``meta`` with the trials done."""
+    arrays = {f"data.{name}": value for name, value in state.data._asdict().items()}
+    arrays |= {f"theta.{i}": leaf for i, leaf in enumerate(jax.tree.leaves(state.theta))}
+    save_state(path, arrays, dict(meta, trials_done=state.trials_done))
+
+
+def load_checkpoint(path: str, task) -> dict:
+    """``dict(state=RunState or None, rows=[...], and the rest of the meta)`` of the checkpoint at ``path``
+    (``save_checkpoint``; theta rebuilt on the tree of ``task``'s default policy); a checkpoint pickled by
+    older code at the same name with ``.pkl`` is read too; ``dict(state=None, rows=[])`` without one."""
+    saved = load_state(path)
+    if saved is None:
+        return load_legacy_pickle(path[:-len(".npz")] + ".pkl") or dict(state=None, rows=[])
+    arrays, meta = saved
+    theta_structure = jax.tree.structure(jax.eval_shape(task.default_policy().init, jax.random.key(0)))
+    data = gp.GPData(**{name: arrays[f"data.{name}"] for name in gp.GPData._fields})
+    theta = (jax.tree.unflatten(theta_structure, [arrays[f"theta.{i}"] for i in range(theta_structure.num_leaves)])
+             if "theta.0" in arrays else None)  # None before the first learned trial
+    return dict(meta, state=RunState(meta.pop("trials_done"), theta, data))
 
 
 def final_state_path(args: Args, method: str, repeat: int) -> str:
@@ -242,7 +265,7 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
     evaluate = jax.vmap(lambda th, k: evaluate_policy(task, problem.policy, th, k, num_runs=settings["eval_runs"]))
     num_trials = task.num_random_trials + settings["learned_trials"]
     checkpoint = checkpoint_path(args, method, repeats)
-    saved = load_pickle(checkpoint) or dict(state=None, rows=[])
+    saved = load_checkpoint(checkpoint, task)
     # a checkpoint's rows carry the code that ran them (blank where it predates the column)
     rows, resume = [{"code_version": "", **row} for row in saved["rows"]], saved["state"]
     # fit on the rows held (same objective, other round-off), except in a batch begun before that
@@ -275,8 +298,8 @@ def run_experiments(args: Args, method: str, repeats: list[int]) -> list[dict]:
                              eval_std=float(scores[i].std(ddof=1)) if scores.shape[1] > 1 else np.nan,
                              data_points=int(num_valid[i]), nonfinite_steps=float(nonfinite[i]), seconds=seconds,
                              code_version=code_version()))
-        save_pickle(dict(state=RunState(record.trial + 1, record.theta, data), rows=rows, jax=JAX_VERSIONS,
-                         fit_rows_held=fit_rows_held, seeds_in_turn=seeds_in_turn), checkpoint)
+        save_checkpoint(checkpoint, RunState(record.trial + 1, record.theta, data),
+                        dict(rows=rows, jax=JAX_VERSIONS, fit_rows_held=fit_rows_held, seeds_in_turn=seeds_in_turn))
         evaluation = f", evaluation mean {scores.mean():.2f}" if record.learned else ""
         if np.nansum(nonfinite) > 0:
             evaluation += f", NON-FINITE estimates in {nonfinite.astype(int).tolist()} optimiser steps"
@@ -331,7 +354,10 @@ def run(args: Args):
         # (it is not atomic: success.final_evaluations leaves out an experiment with fewer trials than its settings)
         table.extend([{**row_key(args, task, method, row["repeat"]), **row}
                       for row in run_experiments(args, method, missing)])
-        os.remove(checkpoint_path(args, method, missing))  # its rows are in the table now
+        checkpoint = checkpoint_path(args, method, missing)
+        for path in (checkpoint, checkpoint[:-len(".npz")] + ".pkl"):  # its rows are in the table now
+            if os.path.exists(path):
+                os.remove(path)
         jax.clear_caches()  # each trial compiled its own programs (docs/extending.md: memory mappings)
     return current_rows(args, table)
 

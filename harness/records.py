@@ -1,9 +1,10 @@
-"""Results that survive interruption: one CSV row per finished measurement, and pickled states.
+"""Results that survive interruption: one CSV row per finished measurement, and saved states.
 
 Every experiment appends a row as soon as a measurement is done, and on a rerun skips the
 measurements whose key (the values of ``key_columns``) is already in the file, so an
 interrupted run loses nothing it computed. Long computations that yield their rows only at
-the end (a batch of learning runs) save their state between steps with ``save_pickle``.
+the end (a batch of learning runs) save their state between steps with ``save_state``: plain
+arrays and JSON in one ``.npz``, never a pickle of the project's classes.
 """
 
 from __future__ import annotations
@@ -12,12 +13,14 @@ import contextlib
 import fcntl
 import functools
 import hashlib
+import json
 import os
 import pickle
 import subprocess
 from typing import Any
 
 import jax
+import numpy as np
 import pandas as pd
 
 
@@ -79,17 +82,38 @@ def read_csv(path: str) -> pd.DataFrame:
                          "is: repair it, or move it away to start afresh") from None
 
 
-def save_pickle(obj: Any, path: str) -> None:
-    """Pickle ``obj`` (its JAX arrays as numpy) to ``path`` atomically: the file, once there, is
-    whole, even if the process dies while writing."""
+STATE_SCHEMA_VERSION = 1
+"""Version of ``save_state``'s layout."""
+
+
+def save_state(path: str, arrays: dict[str, Any], meta: dict) -> None:
+    """``arrays`` (name -> array) and ``meta`` (JSON-able; stored as the JSON text ``meta`` with its
+    ``schema_version``) in one ``.npz`` at ``path``, written atomically: the file, once there, is
+    whole, even if the process dies while writing. Read with ``load_state``, or with numpy alone."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    text = json.dumps(dict(meta, schema_version=STATE_SCHEMA_VERSION), sort_keys=True)
     with open(path + ".tmp", "wb") as f:
-        pickle.dump(jax.device_get(obj), f)
+        np.savez(f, meta=np.array(text), **{name: np.asarray(value) for name, value in jax.device_get(arrays).items()})
     os.replace(path + ".tmp", path)
 
 
-def load_pickle(path: str) -> Any:
-    """What ``save_pickle`` wrote to ``path``, or None if there is nothing there."""
+def load_state(path: str) -> tuple[dict[str, np.ndarray], dict] | None:
+    """(arrays, meta) as ``save_state`` wrote them at ``path``, or None if there is nothing there."""
+    if not os.path.exists(path):
+        return None
+    with np.load(path, allow_pickle=False) as f:
+        arrays = dict(f)
+    meta = json.loads(str(arrays.pop("meta")))
+    if meta.get("schema_version") != STATE_SCHEMA_VERSION:
+        raise ValueError(f"{path}: saved state of schema_version {meta.get('schema_version')!r}, this code reads "
+                         f"{STATE_SCHEMA_VERSION}")
+    return arrays, meta
+
+
+def load_legacy_pickle(path: str) -> Any:
+    """A learning checkpoint pickled before checkpoints were plain data (``save_state``), or None. Only
+    batches begun before 2026-12-07 have one: delete this reader once reports/learn_checkpoints holds
+    no ``.pkl``."""
     if not os.path.exists(path):
         return None
     with open(path, "rb") as f:

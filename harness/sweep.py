@@ -232,10 +232,10 @@ def worker_init() -> None:
 
 def unit_progress(unit: Unit) -> tuple[int, float]:
     """(trials done, seconds spent) of a unit's checkpoint, or (0, 0) without one."""
-    from harness.records import load_pickle
+    from harness import learn
 
-    saved = load_pickle(unit.checkpoint()) if os.path.exists(unit.checkpoint()) else None
-    if not saved or saved.get("state") is None:
+    saved = learn.load_checkpoint(unit.checkpoint(), unit.learn_args().make_task())
+    if saved["state"] is None:
         return 0, 0.0
     return int(saved["state"].trials_done), float(max((r["seconds"] for r in saved["rows"]), default=0.0))
 

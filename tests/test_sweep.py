@@ -83,16 +83,16 @@ def test_units_merge_into_one_csv_per_cell_and_a_killed_unit_resumes(tmp_path, m
     uninterrupted run (the same computation: equal to round-off), and a third run writes nothing."""
     plan = write_plan(tmp_path, '[[cells]]\ntask = "cartpole"\ncost = "angle"\nnoise_k = 1.0\nrepeats = { tp = 2 }\n')
     units = sweep.load_plan(plan)
-    real_save = learn.save_pickle
+    real_save = learn.save_checkpoint
 
-    def killed_after_first_save(obj, path):
-        real_save(obj, path)
+    def killed_after_first_save(*args):
+        real_save(*args)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(learn, "save_pickle", killed_after_first_save)
+    monkeypatch.setattr(learn, "save_checkpoint", killed_after_first_save)
     with pytest.raises(KeyboardInterrupt):
         sweep.main(["--plan", plan, "--workers", "1"])
-    monkeypatch.setattr(learn, "save_pickle", real_save)
+    monkeypatch.setattr(learn, "save_checkpoint", real_save)
     status = sweep.status_lines(units)
     assert status[0].startswith("partial") and "trial 1/2" in status[0] and status[1].startswith("left")
     assert "0 of 2 units done" in status[-1]
@@ -102,7 +102,7 @@ def test_units_merge_into_one_csv_per_cell_and_a_killed_unit_resumes(tmp_path, m
     rows = records.read_csv(str(csv))
     assert sorted(zip(rows.repeat, rows.trial)) == [(0, 0), (0, 1), (1, 0), (1, 1)]
     assert (tmp_path / "out" / "learn_cartpole_angle_k1_quick.md").exists()
-    assert not list((tmp_path / "checkpoints").glob("*.pkl"))  # merged units leave no checkpoint
+    assert not list((tmp_path / "checkpoints").glob("*.npz"))  # merged units leave no checkpoint
     alone = learn.run_experiments(units[0].learn_args(), "tp", [0])
     timing = ["seconds", "code_version"]
     pd.testing.assert_frame_equal(rows[rows.repeat == 0][pd.DataFrame(alone).columns].drop(columns=timing)
