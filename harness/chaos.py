@@ -64,10 +64,13 @@ def source_file(plan_path: str, rule: dict) -> str:
     return learn.final_state_path(unit_args, rule["method"], rule["repeat"])
 
 
+particle_returns = jax.jit(scenario_lib.particle_returns, static_argnums=3)
+"""Compiled once for every point of the line."""
+
+
 def objective(problem, theta, key, num_particles: int) -> float:
     """J: the mean particle return under one fixed key."""
-    returns = jax.jit(scenario_lib.particle_returns, static_argnums=3)
-    return float(np.mean(np.asarray(returns(problem, theta, key, num_particles))))
+    return float(np.mean(np.asarray(particle_returns(problem, theta, key, num_particles))))
 
 
 def line_extent(where: scenario_lib.Setting, key, num_particles: int, above: float) -> tuple[list, bool]:

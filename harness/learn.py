@@ -51,7 +51,8 @@ from harness.episodic import RunState, evaluate_policy, in_precision, learning_r
 from harness.keys import stream
 from harness.methods import METHODS, runnable
 from harness.records import ResultTable, code_version, load_legacy_pickle, load_state, save_state
-from harness.scenario import Scenario, provenance, save_scenario
+from harness.scenario import (Scenario, policy_structure, provenance, save_scenario, theta_arrays,
+                              theta_from_arrays)
 from models import gp, sparse_gp
 
 JAX_VERSIONS = f"jax {jax.__version__}, jaxlib {jaxlib.__version__}"
@@ -206,7 +207,7 @@ def save_checkpoint(path: str, state: RunState, meta: dict) -> None:
     """A batch's state as plain data (``records.save_state``): the arrays ``data.*`` and ``theta.I`` (the I-th
     leaf of theta; each with a leading repeat axis) and, as JSON, ``meta`` with the trials done."""
     arrays = {f"data.{name}": value for name, value in state.data._asdict().items()}
-    arrays |= {f"theta.{i}": leaf for i, leaf in enumerate(jax.tree.leaves(state.theta))}
+    arrays |= theta_arrays(state.theta)
     save_state(path, arrays, dict(meta, trials_done=state.trials_done))
 
 
@@ -218,10 +219,9 @@ def load_checkpoint(path: str, task) -> dict:
     if saved is None:
         return load_legacy_pickle(path[:-len(".npz")] + ".pkl") or dict(state=None, rows=[])
     arrays, meta = saved
-    theta_structure = jax.tree.structure(jax.eval_shape(task.default_policy().init, jax.random.key(0)))
     data = gp.GPData(**{name: arrays[f"data.{name}"] for name in gp.GPData._fields})
-    theta = (jax.tree.unflatten(theta_structure, [arrays[f"theta.{i}"] for i in range(theta_structure.num_leaves)])
-             if "theta.0" in arrays else None)  # None before the first learned trial
+    # theta is None before the first learned trial
+    theta = theta_from_arrays(arrays, policy_structure(task)) if "theta.0" in arrays else None
     return dict(meta, state=RunState(meta.pop("trials_done"), theta, data))
 
 

@@ -139,6 +139,21 @@ SCENARIO_SCHEMA_VERSION = 1
 """Version of the scenario files' layout (``save_scenario``)."""
 
 
+def policy_structure(task: Task):
+    """The tree structure of ``task``'s default policy parameters (theta)."""
+    return jax.tree.structure(jax.eval_shape(task.default_policy().init, jax.random.key(0)))
+
+
+def theta_arrays(theta) -> dict[str, np.ndarray]:
+    """theta's leaves as named arrays, ``theta.I`` the I-th (none for theta None)."""
+    return {f"theta.{i}": np.asarray(leaf) for i, leaf in enumerate(jax.tree.leaves(theta))}
+
+
+def theta_from_arrays(arrays: dict, structure):
+    """theta rebuilt on ``structure`` from ``theta_arrays``'s entries of ``arrays``."""
+    return jax.tree.unflatten(structure, [arrays[f"theta.{i}"] for i in range(structure.num_leaves)])
+
+
 def save_scenario(saved: dict, path: str) -> None:
     """Write ``saved`` (``scenario``: a Scenario, ``provenance``: a dict) as plain data: ``PATH.npz`` (the
     arrays: ``data.*`` and ``posterior.*`` by field, ``theta.I`` the I-th leaf of theta0, ``returns``) and
@@ -146,7 +161,7 @@ def save_scenario(saved: dict, path: str) -> None:
     scn = jax.device_get(saved["scenario"])
     arrays = {f"data.{k}": np.asarray(v) for k, v in scn.data._asdict().items()}
     arrays |= {f"posterior.{k}": np.asarray(v) for k, v in scn.posterior._asdict().items()}
-    arrays |= {f"theta.{i}": np.asarray(leaf) for i, leaf in enumerate(jax.tree.leaves(scn.theta))}
+    arrays |= theta_arrays(scn.theta)
     arrays["returns"] = np.asarray(scn.returns)
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     with open(path + ".npz.tmp", "wb") as f:
@@ -172,12 +187,11 @@ def load_scenario(path: str, task: str) -> dict | None:
                          f"{SCENARIO_SCHEMA_VERSION}")
     with np.load(path + ".npz") as f:
         arrays = dict(f)
-    template = jax.eval_shape(tasks.make(task).default_policy().init, jax.random.key(0))
-    if str(jax.tree.structure(template)) != meta["theta_structure"]:
+    structure = policy_structure(tasks.make(task))
+    if str(structure) != meta["theta_structure"]:
         raise ValueError(f"{path}: theta0 is a {meta['theta_structure']}, task {task!r}'s policy takes a "
-                         f"{jax.tree.structure(template)}")
-    theta = jax.tree.unflatten(jax.tree.structure(template),
-                               [arrays[f"theta.{i}"] for i in range(len(jax.tree.leaves(template)))])
+                         f"{structure}")
+    theta = theta_from_arrays(arrays, structure)
     scenario = Scenario(gp.GPData(**{k: arrays[f"data.{k}"] for k in gp.GPData._fields}),
                         gp.GPPosterior(**{k: arrays[f"posterior.{k}"] for k in gp.GPPosterior._fields}),
                         theta, arrays["returns"])
