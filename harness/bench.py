@@ -38,7 +38,7 @@ from harness.cli import Progress, int_list, parse, run_command, str_list
 from harness import bench_learning, keys
 from harness.episodic import add_episode, cast_floating
 from harness.methods import DEFAULT_METHODS
-from harness.records import code_version
+from harness.records import code_version, read_csv
 from models import gp
 from tasks.rollout import run_episode
 
@@ -73,6 +73,8 @@ class Args:
     """Comma-separated precisions of the gradient timings (float32: the GP fitted in float64, cast)."""
     out: str = "reports"
     """Folder for bench.md and the CSVs."""
+    report_only: bool = False
+    """Time nothing: rewrite bench.md from the CSVs in --out (and the whole run in {out}/bench_whole, if any)."""
 
 
 def matmul_rate(n: int = 2048, repeats: int = 5, dtype=jnp.float64) -> float:
@@ -133,8 +135,69 @@ def time_estimator(estimator, problem, theta, num_particles: int, repeats: int) 
     return {"median_s": float(np.median(times)), "compile_s": compile_s, "peak_memory_mb": buffers / 2**20}
 
 
+def this_machine() -> str:
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, JAX {jax.__version__} on "
+            f"{jax.default_backend()} ({jax.devices()[0].device_kind})")
+
+
+def saved_results(out: str) -> tuple[pd.DataFrame, pd.DataFrame | None]:
+    """bench.csv and bench_learning.csv (None if absent) under ``out``."""
+    learning = os.path.join(out, "bench_learning.csv")
+    return read_csv(os.path.join(out, "bench.csv")), read_csv(learning) if os.path.exists(learning) else None
+
+
+def complete_older_csv(out: str, num_points: int) -> None:
+    """Give a bench.csv of older code its missing columns: ``matmul_gflops`` from its columns (gflop /
+    (roofline_fraction x median_s)), ``gp_points`` = ``num_points``, ``machine`` this machine's description."""
+    path = os.path.join(out, "bench.csv")
+    table = read_csv(path)
+    filled = dict(matmul_gflops=table.gflop / (table.roofline_fraction * table.median_s), gp_points=num_points,
+                  machine=this_machine())
+    if missing := {name: value for name, value in filled.items() if name not in table}:
+        table.assign(**missing).to_csv(path, index=False)
+
+
+TARGETS = dict(rp_float32_s=0.20, tp_float32_s=0.25, rp_roofline=0.4, tp_experiment_min=12.0)
+"""Issue 47's targets at P = 300 and the bench's GP (450 points): seconds per RP and TP estimate in float32, RP's
+roofline fraction (a goal), and a paper-setting TP experiment (float32 rollouts, FITC past 300 points) in
+minutes on 2 cores."""
+WHOLE_RUN = "bench_whole"
+"""Folder (under --out) of the paper-setting TP experiment timed whole (``target_lines``' command)."""
+WHOLE_RUN_FLAGS = "--preset paper --methods tp --repeats 1 --rollout-float32 --gp-inducing 300"
+
+
+def target_lines(table: pd.DataFrame, learning: pd.DataFrame | None, whole: float | None) -> list[str]:
+    """The targets section: each target beside its measurement in this report, and what is left."""
+    at = table[(table.particles == 300) & (table.dtype == "float32")].set_index("estimator")
+    lines = ["## Targets (issue 47: twice as fast)", ""]
+    if {"rp", "tp"} <= set(at.index):
+        floor = at.gflop / at.matmul_gflops  # the flop model's seconds at the matmul rate
+        for name in ("rp", "tp"):
+            target = TARGETS[f"{name}_float32_s"]
+            lines.append(f"- {name.upper()}, float32, P = 300, N = {at.gp_points[name]}: {at.median_s[name]:.3f} s (target "
+                         f"{target:.2f} s: {'met' if at.median_s[name] <= target else 'not met'}); its flops alone "
+                         f"({at.gflop[name]:.1f} GFLOP) take {floor[name]:.3f} s at this run's float32 matmul rate, "
+                         f"so the target asks for a roofline fraction of {floor[name] / target:.2f}.")
+        lines.append(f"- RP's roofline fraction, float32, P = 300: {at.roofline_fraction['rp']:.2f} (goal "
+                     f"{TARGETS['rp_roofline']:.1f}: {'met' if at.roofline_fraction['rp'] >= TARGETS['rp_roofline'] else 'not met'}).")
+    if learning is not None:
+        sweep_setting = learning[(learning.method == "tp") & (learning.dtype == "float32") & (learning.gp != "full")]
+        if len(sweep_setting):
+            projected = float(sweep_setting.total_min.iloc[0])
+            lines.append(f"- A paper-setting TP experiment (float32 rollouts, FITC past 300 points: the sweep's "
+                         f"settings), projected: {projected:.1f} min (target {TARGETS['tp_experiment_min']:g} min: "
+                         f"{'met' if projected <= TARGETS['tp_experiment_min'] else 'not met'}).")
+    command = f"python -m harness.learn {WHOLE_RUN_FLAGS} --out reports/{WHOLE_RUN}"
+    lines.append(f"- The same experiment timed whole (`{command}`, 2 cores, nothing else running): "
+                 + (f"{whole:.1f} min." if whole is not None else "not run yet."))
+    return lines + [""]
+
+
 def main(argv=None) -> None:
     args = parse(Args, argv)
+    if args.report_only:
+        complete_older_csv(args.out, args.trials * tasks.make("cartpole").horizon)
+        return write_report(args, *saved_results(args.out))
     version = code_version()  # the code loaded now, whatever is committed while this runs
     jax.config.update("jax_enable_x64", True)
     for name in str_list(args.estimators):
@@ -151,11 +214,12 @@ def main(argv=None) -> None:
         stats = time_estimator(estimators.make(name), *cast[dtype], num_particles, args.repeats)
         flops = gp_gradient_flops(name, num_particles, task.horizon, num_points, task.model_state_dim)
         rows.append({"estimator": name, "dtype": dtype, "particles": num_particles, **stats,
-                     "gflop": flops / 1e9, "roofline_fraction": flops / rates[dtype] / stats["median_s"]})
+                     "gflop": flops / 1e9, "matmul_gflops": rates[dtype] / 1e9, "gp_points": num_points,
+                     "roofline_fraction": flops / rates[dtype] / stats["median_s"]})
         print(progress.line(index, f"{name:7s} {dtype} P={num_particles:5d}: {stats['median_s']:.3f} s "
                                    f"(compile {stats['compile_s']:.1f} s, peak {stats['peak_memory_mb']:.0f} MiB)"),
               file=sys.stderr, flush=True)
-    table = pd.DataFrame(rows).assign(code_version=version)
+    table = pd.DataFrame(rows).assign(machine=this_machine(), code_version=version)
     os.makedirs(args.out, exist_ok=True)
     table.to_csv(os.path.join(args.out, "bench.csv"), index=False)
     learning = None
@@ -165,11 +229,14 @@ def main(argv=None) -> None:
                                           str_list(args.fitc_learning_methods),
                                           str_list(args.fitc_float32_learning_methods), seed=args.seed)
         learning.assign(code_version=version).to_csv(os.path.join(args.out, "bench_learning.csv"), index=False)
-    write_report(args, table, rates, task, num_points, learning)
+    write_report(args, table, learning)
 
 
-def write_report(args: Args, table: pd.DataFrame, rates: dict[str, float], task, num_points: int,
-                 learning: pd.DataFrame | None = None) -> None:
+def write_report(args: Args, table: pd.DataFrame, learning: pd.DataFrame | None = None) -> None:
+    """bench.md from the timings (and the learning section's, and the whole run's in {out}/bench_whole)."""
+    task = tasks.make("cartpole")
+    rates = {dtype: 1e9 * float(table[table.dtype == dtype].matmul_gflops.iloc[0]) for dtype in table.dtype.unique()}
+
     def wide(values: str, dtype: str, fmt: str) -> str:
         chosen = table[table.dtype == dtype].pivot(index="estimator", columns="particles", values=values)
         return chosen.reset_index().to_markdown(index=False, floatfmt=fmt)
@@ -184,9 +251,8 @@ def write_report(args: Args, table: pd.DataFrame, rates: dict[str, float], task,
         f"--fitc-learning-methods '{args.fitc_learning_methods}' "
         f"--fitc-float32-learning-methods '{args.fitc_float32_learning_methods}'`",
         "",
-        f"- Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
-        f"JAX {jax.__version__} on {jax.default_backend()} ({jax.devices()[0].device_kind}).",
-        f"- Setting: cart-pole `pipps` preset, T = {task.horizon}, GP with {num_points} training points "
+        f"- Machine: {table.machine.iloc[0]}.",
+        f"- Setting: cart-pole `pipps` preset, T = {task.horizon}, GP with {table.gp_points.iloc[0]} training points "
         f"({args.trials} random episodes, {args.gp_steps} L-BFGS steps), RBF policy at its initial parameters; "
         "float32 casts the float64-fitted GP and theta.",
         "- Matmul rate measured in this run (2048 x 2048 under XLA): "
@@ -197,6 +263,8 @@ def write_report(args: Args, table: pd.DataFrame, rates: dict[str, float], task,
         "matmul rate over the time measured.",
         "",
     ]
+    lines += target_lines(table, learning, bench_learning.whole_run(os.path.join(args.out, WHOLE_RUN)))
+    lines += ["## One gradient estimate", ""]
     for dtype in rates:
         median = table[table.dtype == dtype].pivot(index="estimator", columns="particles", values="median_s")
         lines += [f"Median seconds per estimate after compilation, {dtype} (rows: estimator; columns: particles):", "",

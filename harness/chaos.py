@@ -13,7 +13,8 @@ the covariance of ``VARIANCE_REPEATS`` estimates with independent keys (``harnes
 
 Writes ``{out}/chaos_scenario.md``: the rule, quoted from the plan, then the numbers, the verdict, and the
 commands of the landscape and variance reports at the scenario (or, if the rule fails, the repeat to try next);
-and ``{out}/chaos_scenario.json``, the same numbers as plain data (``harness.summary`` reads it).
+and ``{out}/chaos_scenario.json``, the same numbers and those commands' arguments as plain data
+(``harness.summary`` reads it, and the reports the commands wrote).
 """
 
 from __future__ import annotations
@@ -33,8 +34,8 @@ from harness import scenario as scenario_lib
 from harness.cli import parse, run_command
 from harness.records import ROOT
 
-SCHEMA_VERSION = 1
-"""Version of chaos_scenario.json's layout."""
+SCHEMA_VERSION = 2
+"""Version of chaos_scenario.json's layout (2: "reports", the reports' arguments by module, where the rule holds)."""
 VARIANCE_REPEATS = 30
 """Estimates behind each variance of the rule (``harness.variance``'s default repeats)."""
 MAX_DOUBLINGS = 12
@@ -85,6 +86,21 @@ def line_extent(where: scenario_lib.Setting, key, num_particles: int, above: flo
     return points, False
 
 
+REPORTS_OUT = "reports/chaos"
+"""Folder of the landscape and variance reports at the scenario."""
+
+
+def report_commands(path: str, seed: int, particles: int, delta_max: float, line: dict, landscape: dict
+                    ) -> dict[str, list[str]]:
+    """The arguments of the landscape and variance reports at the scenario (file ``path``), by module name."""
+    flags = ["--scenario-file", path, "--seed", str(seed)]
+    return {"landscape": [*flags, "--particles", str(particles), "--delta-max", f"{delta_max:g}", "--points",
+                          str(line["points"]), "--box-stds", f"{landscape['heatmap_box_side_sd']:g}", "--estimators",
+                          "rp_fs,gr_fs,lr,tp", "--out", REPORTS_OUT],
+            "variance": [*flags, "--delta-theta", f"0,{delta_max:g}", "--estimators", "rp,gr,lr,lr_is_baseline,tp",
+                         "--out", REPORTS_OUT]}
+
+
 def check(args: Args) -> tuple[list[str], dict]:
     """The report's lines and its numbers (module docstring)."""
     with open(args.plan, "rb") as f:
@@ -130,14 +146,10 @@ def check(args: Args) -> tuple[list[str], dict]:
                    line=[dict(delta=d, cost=j) for d, j in points], line_reaches=reached,
                    holds=bool(low_cost and calm and reached))
     if numbers["holds"]:
-        delta_max = points[-1][0]
-        flags = f"--scenario-file {os.path.relpath(path, ROOT)} --seed {args.seed}"
+        numbers["reports"] = report_commands(os.path.relpath(path, ROOT), args.seed, particles, points[-1][0],
+                                             line, landscape)
         lines += ["**The rule holds: this is the scenario.** Its reports:", "",
-                  f"    python -m harness.landscape {flags} --particles {particles} --delta-max {delta_max:g} "
-                  f"--points {line['points']} --box-stds {landscape['heatmap_box_side_sd']:g} "
-                  "--estimators rp_fs,gr_fs,lr,tp --out reports/chaos",
-                  f"    python -m harness.variance {flags} --delta-theta 0,{delta_max:g} "
-                  "--estimators rp,gr,lr,lr_is_baseline,tp --out reports/chaos", ""]
+                  *(f"    python -m harness.{name} {' '.join(argv)}" for name, argv in numbers["reports"].items()), ""]
     else:
         lines += [f"**The rule fails at repeat {rule['repeat']}.** As the plan says, the next repeat of the same "
                   f"table is taken: set repeat = {rule['repeat'] + 1} in [theta0] and repeats = "

@@ -230,6 +230,12 @@ def agreement(rows: pd.DataFrame, name: str) -> tuple[int, int, float]:
     return int((z <= 1.96).sum()), len(rows), float(z.max())
 
 
+def resamples(name: str) -> bool:
+    """Whether the estimator ``name`` (or the estimator it fixes the noise of) resamples from a Gaussian (GR)."""
+    estimate = estimators.make(name)
+    return bool(getattr(getattr(estimate, "inner", estimate), "gaussian_resampling", False))
+
+
 def findings(args: Args, rows: pd.DataFrame) -> list[str]:
     """What the landscape shows, with the numbers (markdown lines)."""
     lines = ["## What the landscape shows", ""]
@@ -239,7 +245,10 @@ def findings(args: Args, rows: pd.DataFrame) -> list[str]:
         lines.append(f"- {name}: agrees with the FD slope (|difference| < 1.96 standard errors) at {agree} of {total} "
                      f"deltas (largest |z| {z_max:.2f}); "
                      f"interval half-width {width.min():.3g}-{width.max():.3g} (median {width.median():.3g}); "
-                     f"{int(rows[f'{name}_nans'].sum())} non-finite entries.")
+                     f"{int(rows[f'{name}_nans'].sum())} non-finite entries."
+                     + (" Its objective resamples the particles from their Gaussian at every step, a J other than "
+                        "the particle rollout's whose slope FD measures, so it need not agree (that it is the exact "
+                        "gradient of its own objective is tested: tests/test_estimators.py)." if resamples(name) else ""))
     rp = next((n for n in ("rp", "rp_fs") if n in str_list(args.estimators)), None)
     if rp is not None and len(rows) > 2:
         log_var = np.log(rows[f"{rp}_variance"].to_numpy())

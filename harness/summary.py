@@ -15,6 +15,9 @@ Verdict rules:
 - "RP's variance jumps along the line": the ratio var(delta theta = 1.5) / var(0) per particle
   count; holds if every ratio is at least 1e2, reversed if every ratio is below 1, else mixed.
 - A learning table: agrees in the cells whose Wilson 95 % interval holds the paper's rate.
+- The curse-of-chaos scenario (``harness.chaos``): its own rule; the gradient claims at it as above. Its rows
+  on TP's and GR's variance at both ends and on the Lyapunov exponent give numbers only: their reports were
+  computed before a rule for them was fixed, so none is applied after the fact.
 """
 
 from __future__ import annotations
@@ -25,9 +28,11 @@ import os
 import sys
 from typing import NamedTuple
 
+import jax
 import numpy as np
 import pandas as pd
 
+from harness import bench, bench_learning, variance
 from harness.claims import claim_beats, claim_lr_tp_degrade_least
 from harness.cli import parse, run_command
 from harness.methods import METHODS, PAPER_RATES
@@ -36,6 +41,8 @@ from harness.success import success_rows
 
 CLAIMS_START = "<!-- claims table: written by python -m harness.summary; do not edit by hand -->"
 CLAIMS_END = "<!-- end of claims table -->"
+SPEED_START = "<!-- speed: written by python -m harness.summary from reports/bench.csv; do not edit by hand -->"
+SPEED_END = "<!-- end of speed -->"
 VARIANCE_COMMANDS = {task: ["--task", task] for task in ("cartpole", "unicycle")}
 """The variance reports' commands (each task's default: its pinned scenario)."""
 LEARNING_TABLES = {f"cartpole, angle cost, k = {k:g}": f"learn_cartpole_angle_k{k:g}" for k in (0.01, 1.0, 4.0, 9.0, 16.0)}
@@ -111,40 +118,43 @@ def jump_rule(ratios: np.ndarray) -> str:
     return "holds" if (ratios >= 1e2).all() else "reversed" if (ratios < 1).all() else "mixed"
 
 
-def variance_rows(task: str, reports: str):
-    """The variance report's rows at its pinned scenario (``harness.variance.run``: the committed rows are
-    reused; only a cell missing from the CSV would be computed)."""
-    import jax
-
-    from harness import variance
-
+def variance_rows(argv: list[str], out: str):
+    """The rows of the variance report that ``python -m harness.variance ARGV --out OUT`` writes
+    (``harness.variance.run``: the committed rows are reused; only a cell missing from the CSV would be computed)."""
     jax.config.update("jax_enable_x64", True)
-    args = parse(variance.Args, VARIANCE_COMMANDS[task] + ["--out", reports])
+    args = parse(variance.Args, argv + ["--out", out])
     return variance.run(args)
 
 
-def variance_claims(task: str, reports: str) -> list[Claim]:
-    rows, _ = variance_rows(task, reports)
+def gradient_claims(rows: pd.DataFrame, where: str, link: str) -> list[Claim]:
+    """The paper's gradient claims on one variance report's rows at one scenario (``where`` names it): TP lowest
+    (against every other estimator but BIW-LR's baseline variants, as the report's findings), BIW-LR below LR (if
+    both ran), RP's jump from the first delta theta to the last."""
     var = rows.pivot_table(index=["delta_theta", "particles"], columns="estimator", values="variance")
-    link = f"[variance_{task}_gp](variance_{task}_gp.md)"
-    others = var[[c for c in ("rp", "lr", "biw_lr") if c in var.columns]].min(axis=1)
+    others = var.drop(columns=["tp", *(c for c in variance.BIW_BASELINE_VARIANTS if c in var.columns)]).min(axis=1)
     share = var.tp / others
     lowest = int((share < 1).sum())
-    claims = [Claim(f"{task}: TP has the lowest gradient variance", "10-50 % below the others at P <= 250",
+    claims = [Claim(f"{where}: TP has the lowest gradient variance", "10-50 % below the others at P <= 250",
                     f"lowest in {lowest} of {len(share)} cells (TP / best other {share.min():.2f}-{share.max():.2f})",
                     cell_rule(lowest, len(share)), link)]
-    ratio = var.biw_lr / var.lr
-    claims.append(Claim(f"{task}: batch importance weights lower LR's variance", "BIW-LR below LR",
-                        f"below in {int((ratio < 1).sum())} of {len(ratio)} cells (BIW-LR / LR {ratio.min():.2f}-"
-                        f"{ratio.max():.2f})", cell_rule(int((ratio < 1).sum()), len(ratio)), link))
+    if {"lr", "biw_lr"} <= set(var.columns):
+        ratio = var.biw_lr / var.lr
+        claims.append(Claim(f"{where}: batch importance weights lower LR's variance", "BIW-LR below LR",
+                            f"below in {int((ratio < 1).sum())} of {len(ratio)} cells (BIW-LR / LR {ratio.min():.2f}-"
+                            f"{ratio.max():.2f})", cell_rule(int((ratio < 1).sum()), len(ratio)), link))
     deltas = sorted(rows.delta_theta.unique())
     rp = var.rp.unstack("delta_theta")
     jump = (rp[deltas[-1]] / rp[deltas[0]]).to_numpy()
-    claims.append(Claim(f"{task}: RP's variance jumps along the line (curse of chaos)",
+    claims.append(Claim(f"{where}: RP's variance jumps along the line (curse of chaos)",
                         "about 4e5-fold, to 1e8-1e15",
                         f"x {jump.min():.2g} to x {jump.max():.2g} from delta theta {deltas[0]:g} to {deltas[-1]:g} "
                         f"({rp[deltas[-1]].min():.1e}-{rp[deltas[-1]].max():.1e})", jump_rule(jump), link))
     return claims
+
+
+def variance_claims(task: str, reports: str) -> list[Claim]:
+    rows, _ = variance_rows(VARIANCE_COMMANDS[task], reports)
+    return gradient_claims(rows, task, f"[variance_{task}_gp](variance_{task}_gp.md)")
 
 
 def learning_claims(name: str, stem: str, reports: str) -> list[Claim]:
@@ -178,7 +188,9 @@ def reading_claims(reports: str, stem: str = "learn_cartpole_angle_k1") -> list[
 
 
 def chaos_scenario_claims(reports: str) -> list[Claim]:
-    """A row for the curse-of-chaos scenario's rule (``harness.chaos``: chaos_scenario.json), if it was checked."""
+    """The curse-of-chaos scenario's rows (``harness.chaos``: chaos_scenario.json), if it was checked: its rule;
+    where the rule holds, the paper's gradient claims on the variance report at the scenario, TP's and GR's
+    variance at both ends of the line, and the landscape's Lyapunov exponent."""
     path = os.path.join(reports, "chaos_scenario.json")
     if not os.path.exists(path):
         return []
@@ -186,11 +198,49 @@ def chaos_scenario_claims(reports: str) -> list[Claim]:
         found = json.load(f)
     rp, other = found["variance"]["rp"], {k: v for k, v in found["variance"].items() if k != "rp"}
     [(name, value)] = other.items()
-    return [Claim(f"cartpole: a scenario at a policy that works ({found['method']} repeat {found['repeat']}, "
-                  f"{found['plan']}'s rule)", "implied: RP well-behaved at delta theta = 0",
-                  f"J {found['cost']:.2f} (at most {found['max_cost']:g}); RP / {name.upper()} variance "
-                  f"{rp / value:.2g}", "rule holds" if found["holds"] else "rule fails: next repeat",
-                  "[chaos_scenario](chaos_scenario.md)")]
+    claims = [Claim(f"cartpole: a scenario at a policy that works ({found['method']} repeat {found['repeat']}, "
+                    f"{found['plan']}'s rule)", "implied: RP well-behaved at delta theta = 0",
+                    f"J {found['cost']:.2f} (at most {found['max_cost']:g}); RP / {name.upper()} variance "
+                    f"{rp / value:.2g}", "rule holds" if found["holds"] else "rule fails: next repeat",
+                    "[chaos_scenario](chaos_scenario.md)")]
+    commands = found.get("reports", {})
+    if not commands:
+        return claims
+    written_to = commands["variance"][commands["variance"].index("--out") + 1]  # under the repository's reports/
+    out = os.path.join(reports, os.path.relpath(written_to, "reports"))
+    where = "cartpole at a working policy"
+    if "variance" in commands and os.path.exists(os.path.join(out, "variance_cartpole_gp.csv")):
+        rows, _ = variance_rows(commands["variance"], out)
+        link = "[chaos/variance_cartpole_gp](chaos/variance_cartpole_gp.md)"
+        claims += gradient_claims(rows, where, link)
+        var = rows.pivot_table(index="particles", columns=["estimator", "delta_theta"], values="variance")
+        ends = "; ".join(f"{e.upper()} {var[e, d].min():.1e}-{var[e, d].max():.1e} at {d:g}"
+                         for e in ("tp", "gr") for d in sorted(rows.delta_theta.unique()))
+        claims.append(Claim(f"{where}: TP and GR (resampling) escape the curse of chaos",
+                            "TP and GR stay low where RP's variance explodes",
+                            f"{ends} (P = {var.index.min()}-{var.index.max()})",
+                            "numbers only: no rule was fixed before them", link))
+    if "landscape" in commands and os.path.exists(os.path.join(out, "landscape_cartpole_gp.csv")):
+        claims.append(lyapunov_claim(found, out, where))
+    return claims
+
+
+def lyapunov_claim(found: dict, out: str, where: str) -> Claim:
+    """The landscape at the scenario (its CSV's rows at the scenario's content and particle count): the
+    finite-time Lyapunov exponent and RP_FS's variance along the line, and their rank correlation."""
+    rows = read_csv(os.path.join(out, "landscape_cartpole_gp.csv"))
+    line = rows[(rows.scenario == found["content"]) & (rows.particles == found["particles"])].sort_values(
+        "delta_theta")
+    ends = line.iloc[[0, -1]]
+    rho = line.ftle_mean.corr(np.log(line.rp_fs_variance), method="spearman")
+    return Claim(f"{where}: chaos (a positive Lyapunov exponent) where RP's variance rises",
+                 "the closed loop turns chaotic along the line",
+                 f"FTLE {ends.ftle_mean.iloc[0]:.3f} at delta theta {ends.delta_theta.iloc[0]:g} to "
+                 f"{ends.ftle_mean.iloc[-1]:.3f} at {ends.delta_theta.iloc[-1]:g}; RP_FS's variance x "
+                 f"{ends.rp_fs_variance.iloc[-1] / ends.rp_fs_variance.iloc[0]:.2g}; Spearman(FTLE, log variance) "
+                 f"{rho:.2f} over {len(line)} points (P = {found['particles']}, the seed fixed)",
+                 "numbers only: no rule was fixed before them",
+                 "[chaos/landscape_cartpole_gp](chaos/landscape_cartpole_gp.md)")
 
 
 def all_claims(reports: str) -> list[Claim]:
@@ -248,12 +298,30 @@ def summary_text(claims: list[Claim], reports: str) -> str:
         "", *report_index(reports), ""])
 
 
+def readme_with_block(readme: str, start: str, end: str, text: str) -> str:
+    """``readme`` with ``text`` between the markers ``start`` and ``end``."""
+    if start not in readme or end not in readme:
+        raise ValueError(f"README.md lacks the markers {start!r} ... {end!r}")
+    head, rest = readme.split(start, 1)
+    _, tail = rest.split(end, 1)
+    return head + start + "\n" + text + "\n" + end + tail
+
+
 def readme_with_table(readme: str, claims: list[Claim]) -> str:
-    if CLAIMS_START not in readme or CLAIMS_END not in readme:
-        raise ValueError(f"README.md lacks the claims table's markers {CLAIMS_START!r} ... {CLAIMS_END!r}")
-    head, rest = readme.split(CLAIMS_START, 1)
-    _, tail = rest.split(CLAIMS_END, 1)
-    return head + CLAIMS_START + "\n" + claims_table(claims, "reports/") + "\n" + CLAIMS_END + tail
+    return readme_with_block(readme, CLAIMS_START, CLAIMS_END, claims_table(claims, "reports/"))
+
+
+def speed_text(reports: str) -> str:
+    """The README's speed section: ``harness.bench``'s targets, from its CSVs in ``reports``."""
+    table, learning = bench.saved_results(reports)
+    lines = bench.target_lines(table, learning, bench_learning.whole_run(os.path.join(reports, bench.WHOLE_RUN)))
+    return "\n".join(["From [reports/bench.md](reports/bench.md) (`python -m harness.bench`, on "
+                      f"{table.machine.iloc[0]}); a target not met is what is left.", "", *lines[2:-1]])
+
+
+def readme_text(readme: str, claims: list[Claim], reports: str) -> str:
+    """The README with its generated blocks: the claims table and the speed section."""
+    return readme_with_block(readme_with_table(readme, claims), SPEED_START, SPEED_END, speed_text(reports))
 
 
 def main(argv=None) -> None:
@@ -263,7 +331,7 @@ def main(argv=None) -> None:
     targets = {os.path.join(reports, "SUMMARY.md"): summary_text(claims, reports)}
     readme = os.path.join(ROOT, "README.md")
     with open(readme) as f:
-        targets[readme] = readme_with_table(f.read(), claims)
+        targets[readme] = readme_text(f.read(), claims, reports)
     stale = []
     for path, text in targets.items():
         old = open(path).read() if os.path.exists(path) else None

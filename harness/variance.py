@@ -32,6 +32,8 @@ from harness.cli import Progress, check_sizes, float_list, int_list, parse, run_
 from harness.records import ResultTable
 
 KEY_COLUMNS = ["task", "model", "estimator", "particles", "delta_theta", "repeats", "seed", "scenario"]
+BIW_BASELINE_VARIANTS = ("biw_lr_pairwise", "biw_lr_no_baseline")
+"""BIW-LR with other baselines than the paper's: compared with BIW-LR, not counted among TP's rivals."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,7 +175,7 @@ def findings(table: pd.DataFrame) -> list[str]:
         lines.append(f"- Batch importance weighting lowers the LR variance: in {lower} of {len(ratio)} cells "
                      f"(BIW-LR / LR variance: {', '.join(f'{r:.2f}' for r in ratio)}, ordered by delta theta then "
                      f"particles). {'Holds' if lower == len(ratio) else 'Does not hold' if lower == 0 else 'Mixed'}.")
-    variants = [name for name in ("biw_lr_pairwise", "biw_lr_no_baseline") if name in var.columns]
+    variants = [name for name in BIW_BASELINE_VARIANTS if name in var.columns]
     if "biw_lr" in var.columns and variants:
         lines.append("- BIW-LR's baselines (variance over the paper's leave-one-out baseline, per cell as above): "
                      + "; ".join(f"{name}: {', '.join(f'{r:.2f}' for r in var[name] / var.biw_lr)}"

@@ -2,24 +2,27 @@
 pinned scenario standing in for the source run's final state; and a gradient experiment started from a
 scenario file (``--scenario-file``)."""
 
+import filecmp
 import json
 import os
 import shutil
 
 import pytest
 
-from harness import chaos, learn, records, summary, sweep, variance
+from harness import chaos, landscape, learn, records, summary, sweep, variance
+from harness.cli import parse
 
 PLAN = os.path.join(records.ROOT, "plans", "chaos_scenario.toml")
 PINNED = os.path.join(records.ROOT, "scenarios", "scenario_cartpole_27b490aadc97")
 
 
-def small_plan(tmp_path, max_cost: float) -> str:
-    """The plan with its source run's output under tmp_path, 20 particles and ``max_cost``; the pinned
-    scenario copied to where the source run keeps its final state."""
+def small_plan(tmp_path, max_cost: float, extend_until_cost: float = 20.0) -> str:
+    """The plan with its source run's output under tmp_path, 20 particles, ``max_cost`` and
+    ``extend_until_cost``; the pinned scenario copied to where the source run keeps its final state."""
     text = open(PLAN).read()
     for old, new in [('out = "reports/chaos_source"', f'out = "{tmp_path / "source"}"'),
-                     ("particles = 1000", "particles = 20"), ("max_cost = 10.0", f"max_cost = {max_cost}")]:
+                     ("particles = 1000", "particles = 20"), ("max_cost = 10.0", f"max_cost = {max_cost}"),
+                     ("extend_until_cost = 20.0", f"extend_until_cost = {extend_until_cost}")]:
         assert old in text
         text = text.replace(old, new)
     path = tmp_path / "plan.toml"
@@ -47,6 +50,27 @@ def test_the_rule_is_quoted_before_its_numbers_and_decides_the_verdict(tmp_path,
     assert f"{numbers['cost']:.2f} (the rule: at most 1): NOT met" in report
     [row] = summary.chaos_scenario_claims(str(tmp_path))  # the claims table's row says the same
     assert row.verdict == "rule fails: next repeat" and f"J {numbers['cost']:.2f}" in row.ours
+
+
+def test_where_the_rule_holds_its_json_holds_the_commands_of_the_reports_at_the_scenario(tmp_path, monkeypatch):
+    monkeypatch.setattr(chaos, "VARIANCE_REPEATS", 2)
+    variances = iter([1.0, 2.0])  # RP's, then LR's: the rule's second condition is met
+    monkeypatch.setattr(variance, "cell_statistics", lambda estimates: {"variance": next(variances)})
+    # the pinned swing-up scenario (J near 25 of 30) meets a cut of 30, and its line passes J = 1 at delta theta 1
+    chaos.main(["--plan", small_plan(tmp_path, max_cost=30.0, extend_until_cost=1.0), "--out", str(tmp_path)])
+    report = (tmp_path / "chaos_scenario.md").read_text()
+    numbers = json.loads((tmp_path / "chaos_scenario.json").read_text())
+    assert numbers["holds"] and "The rule holds" in report and [p["delta"] for p in numbers["line"]] == [0.0, 1.0]
+    for name, module in [("landscape", landscape), ("variance", variance)]:
+        argv = numbers["reports"][name]
+        assert f"python -m harness.{name} {' '.join(argv)}" in report
+        args = parse(module.Args, argv)  # the source run's final state: here a copy of the pinned scenario
+        assert filecmp.cmp(os.path.join(records.ROOT, args.scenario_file + ".npz"), PINNED + ".npz", shallow=False)
+        assert args.out == chaos.REPORTS_OUT and args.seed == 0
+    assert parse(landscape.Args, numbers["reports"]["landscape"]).delta_max == 1.0
+    assert parse(variance.Args, numbers["reports"]["variance"]).delta_theta == "0,1"
+    rows = summary.chaos_scenario_claims(str(tmp_path))  # no report at the scenario yet: the rule's row alone
+    assert [row.verdict for row in rows] == ["rule holds"]
 
 
 def test_a_gradient_experiment_starts_from_a_scenario_file(tmp_path):

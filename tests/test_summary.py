@@ -1,4 +1,5 @@
-"""harness.summary: the committed claims table is what the command writes, and its verdict rules."""
+"""harness.summary: the committed claims table and speed section are what the command writes, and its verdict
+rules."""
 
 import os
 
@@ -15,9 +16,11 @@ def test_the_committed_summary_and_readme_table_are_what_the_command_writes():
             "reports/SUMMARY.md is stale: run python -m harness.summary"
     with open(os.path.join(ROOT, "README.md")) as f:
         readme = f.read()
-    assert readme == summary.readme_with_table(readme, claims), "the README's table is stale: python -m harness.summary"
-    edited = readme.replace("| holds |", "| reproduced |", 1)
-    assert edited != readme and summary.readme_with_table(edited, claims) == readme  # a hand edit is overwritten
+    reports = os.path.join(ROOT, "reports")
+    assert readme == summary.readme_text(readme, claims, reports), "the README is stale: python -m harness.summary"
+    for old, new in [("| holds |", "| reproduced |"), ("(target 0.2", "(target 0.1")]:
+        edited = readme.replace(old, new, 1)
+        assert edited != readme and summary.readme_text(edited, claims, reports) == readme  # hand edits are overwritten
 
 
 def test_the_verdict_rules():
