@@ -188,7 +188,7 @@ def target_lines(table: pd.DataFrame, learning: pd.DataFrame | None, whole: floa
                          f"settings), projected: {projected:.1f} min (target {TARGETS['tp_experiment_min']:g} min: "
                          f"{'met' if projected <= TARGETS['tp_experiment_min'] else 'not met'}).")
     command = f"python -m harness.learn {WHOLE_RUN_FLAGS} --out reports/{WHOLE_RUN}"
-    lines.append(f"- The same experiment timed whole (`{command}`, 2 cores, nothing else running): "
+    lines.append(f"- The same experiment timed whole (`{command}`, 2 cores; per-trial seconds in its CSV): "
                  + (f"{whole:.1f} min." if whole is not None else "not run yet."))
     return lines + [""]
 

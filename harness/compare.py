@@ -21,7 +21,7 @@ At theta0 of the scenario (``harness.scenario``; the same theta0 and task for ev
   ``repeats`` heavy-tailed estimates keeps much of their noise).
 
 Rows go to ``compare_{task}.csv`` as each cell finishes (a rerun resumes); the reference to
-``.cache/``; the markdown beside the CSV.
+``.cache/``; the markdown and metadata (``records.write_metadata``) beside the CSV.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import dataclasses
 import functools
 import os
 import sys
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax
@@ -42,7 +43,7 @@ import estimators
 from harness import keys
 from harness import scenario as scenario_lib
 from harness.cli import Progress, check_sizes, int_list, parse, run_command, str_list
-from harness.records import ResultTable
+from harness.records import Command, ResultTable, write_metadata
 from harness.variance import cell_statistics, repeated_estimates
 
 KEY_COLUMNS = ["task", "model", "estimator", "particles", "repeats", "seed", "scenario", "reference"]
@@ -277,8 +278,24 @@ def reference_lines(args: Args, reference: Reference) -> list[str]:
     return lines
 
 
-def write_report(args: Args, rows: pd.DataFrame, reference: Reference, scenario_lines: list[str]) -> None:
-    """The markdown: settings, the reference's quality, the table and what it says."""
+def command(args: Args) -> Command:
+    """The command that makes this report (its rows and reference reused): the markdown prints it, the metadata
+    lists it."""
+    fd_step = ["--reference-fd-step", f"{args.reference_fd_step:g}"] if args.reference_estimator == "fd" else []
+    return Command("harness.compare", [
+        "--task", args.task, "--models", args.models, "--estimators", args.estimators, "--particles", args.particles,
+        "--repeats", str(args.repeats), "--reference-model", args.reference_model, "--reference-estimator",
+        args.reference_estimator, *fd_step, "--reference-particles", str(args.reference_particles),
+        "--reference-repeats", str(args.reference_repeats), "--seed", str(args.seed),
+        *args.scenario_flags()])
+
+
+def write_report(args: Args, rows: pd.DataFrame, reference: Reference, scenario_lines: list[str],
+                 objective: Sequence[dict] = ()) -> None:
+    """The markdown (settings, the reference's quality, the table and what it says) and the metadata
+    (``records.write_metadata``; ``objective``: the J of ``scenario_lines``, ``scenario.objective_values``; none
+    where these are none)."""
+    made_by = command(args)
     models = str_list(args.models)
     wide = rows.pivot_table(index=["estimator", "particles"], columns="model", dropna=False,
                             values=["variance", "cosine", "cosine_ci", "rel_error", "rel_error_ci", "cosine_of_mean",
@@ -307,12 +324,7 @@ def write_report(args: Args, rows: pd.DataFrame, reference: Reference, scenario_
     lines = [
         f"# Learned model against true dynamics: {args.task}",
         "",
-        f"Command: `python -m harness.compare --task {args.task} --models {args.models} --estimators {args.estimators} "
-        f"--particles {args.particles} --repeats {args.repeats} --reference-model {args.reference_model} "
-        f"--reference-estimator {args.reference_estimator} "
-        + (f"--reference-fd-step {args.reference_fd_step:g} " if args.reference_estimator == "fd" else "")
-        + f"--reference-particles {args.reference_particles} "
-        f"--reference-repeats {args.reference_repeats} --seed {args.seed} {args.scenario_flags()}`",
+        f"Command: `{made_by.text}`",
         "",
         *scenario_lib.model_labels(args.task, str_list(args.models) + [args.reference_model]),
         *scenario_lines,
@@ -327,16 +339,20 @@ def write_report(args: Args, rows: pd.DataFrame, reference: Reference, scenario_
         table.reset_index().to_markdown(index=False, disable_numparse=True),
         "",
     ]
-    with open(os.path.join(args.out, f"compare_{args.task}.md"), "w") as f:
+    stem = os.path.join(args.out, f"compare_{args.task}")
+    with open(stem + ".md", "w") as f:
         f.write("\n".join(lines))
+    write_metadata(stem, made_by, str(rows.scenario.iloc[0]), objective)
 
 
 def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
     rows, reference, where = run(args)
-    write_report(args, rows, reference, args.scenario_lines(where, rows, "; every model is evaluated at its theta0"))
-    print(f"wrote {os.path.join(args.out, f'compare_{args.task}')}.{{csv,md}}", file=sys.stderr)
+    objective = scenario_lib.objective_values(where, args.seed)
+    write_report(args, rows, reference, args.scenario_lines(where, rows, objective, "; every model is evaluated at its theta0"),
+                 objective)
+    print(f"wrote {os.path.join(args.out, f'compare_{args.task}')}.{{csv,md,json}}", file=sys.stderr)
 
 
 if __name__ == "__main__":

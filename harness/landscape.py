@@ -19,7 +19,8 @@ One key, the same at every delta (the fixed seed), draws the particles. At each 
   over a box of ``box_stds`` standard deviations of p(s_1) (estimated from the particles).
 
 Rows are appended to ``landscape_{task}_{model}.csv`` as each delta finishes (a rerun resumes);
-the heatmaps go to ``landscape_{task}_{model}_slices.npz``; the figure and markdown beside.
+the heatmaps go to ``landscape_{task}_{model}_slices.npz``; the figure, markdown and metadata
+(``records.write_metadata``) beside.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from harness import keys
 from harness import scenario as scenario_lib
 from harness.cli import Progress, check_sizes, float_list, parse, run_command, str_list
 from harness.lyapunov import finite_time_exponents
-from harness.records import ResultTable
+from harness.records import Command, ResultTable, write_metadata
 
 KEY_COLUMNS = ["task", "model", "particles", "delta_theta", "seed", "scenario", "fd_step", "estimators"]
 Z95 = 1.96
@@ -269,8 +270,20 @@ def findings(args: Args, rows: pd.DataFrame) -> list[str]:
     return lines
 
 
-def write_report(args: Args, rows: pd.DataFrame, slices: dict, scenario_lines: list[str]) -> None:
-    """The figure (panels a-g) and the markdown (settings, findings, the per-delta table)."""
+def command(args: Args) -> Command:
+    """The command that makes this report (its rows reused): the markdown prints it, the metadata lists it."""
+    return Command("harness.landscape", [
+        "--task", args.task, "--model", args.model, "--estimators", args.estimators,
+        "--particles", str(args.particles), "--delta-max", f"{args.delta_max:g}", "--points", str(args.points),
+        "--fd-step", f"{args.fd_step:g}", "--slice-dims", ",".join(args.slice_names), "--slice-deltas",
+        args.slice_deltas, "--slice-particles", str(args.slice_particles), "--grid", str(args.grid),
+        "--box-stds", f"{args.box_stds:g}", "--seed", str(args.seed), *args.scenario_flags()])
+
+
+def write_report(args: Args, rows: pd.DataFrame, slices: dict, scenario_lines: list[str],
+                 objective: list[dict]) -> None:
+    """The figure (panels a-g), the markdown (settings, findings, the per-delta table) and the metadata
+    (``records.write_metadata``; ``objective``: the J of ``scenario_lines``, ``scenario.objective_values``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -327,13 +340,11 @@ def write_report(args: Args, rows: pd.DataFrame, slices: dict, scenario_lines: l
     columns = ["delta_theta", "value", "value_ci", "fd_slope", "fd_slope_ci"] + [
         c for n in names for c in (f"{n}_grad", f"{n}_ci")] + ([f"{rp}_variance"] if rp else []) + [
         "ftle_mean", "ftle_positive_fraction"]
+    made_by = command(args)
     lines = [
         f"# The curse of chaos: {args.task}, {args.model} model",
         "",
-        f"Command: `python -m harness.landscape --task {args.task} --model {args.model} --estimators {args.estimators} "
-        f"--particles {args.particles} --delta-max {args.delta_max:g} --points {args.points} --fd-step {args.fd_step:g} "
-        f"--slice-dims {','.join(args.slice_names)} --slice-deltas {args.slice_deltas} --slice-particles {args.slice_particles} "
-        f"--grid {args.grid} --box-stds {args.box_stds:g} --seed {args.seed} {args.scenario_flags()}`",
+        f"Command: `{made_by.text}`",
         "",
         *scenario_lib.model_labels(args.task, [args.model]),
         *scenario_lines,
@@ -353,14 +364,17 @@ def write_report(args: Args, rows: pd.DataFrame, slices: dict, scenario_lines: l
     ]
     with open(args.stem + ".md", "w") as f:
         f.write("\n".join(lines))
+    write_metadata(args.stem, made_by, str(rows.scenario.iloc[0]), objective)
 
 
 def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
     rows, slices, where = run(args)
-    write_report(args, rows, slices, args.scenario_lines({args.model: where}, rows))
-    print(f"wrote {args.stem}.{{csv,md,png}}", file=sys.stderr)
+    by_model = {args.model: where}
+    objective = scenario_lib.objective_values(by_model, args.seed)
+    write_report(args, rows, slices, args.scenario_lines(by_model, rows, objective), objective)
+    print(f"wrote {args.stem}.{{csv,md,png,json}}", file=sys.stderr)
 
 
 if __name__ == "__main__":

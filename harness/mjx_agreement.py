@@ -15,7 +15,7 @@ and the controls is not finite. A model that only approximates the equations (``
 is labelled so in the report.
 
 Rows go to ``mjx_agreement_{task}.csv`` as each fraction finishes (a rerun resumes); the
-markdown beside it.
+markdown and metadata (``records.write_metadata``) beside it.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import pandas as pd
 
 import tasks
 from harness.cli import float_list, parse, run_command
-from harness.records import ResultTable
+from harness.records import Command, ResultTable, write_metadata
 
 KEY_COLUMNS = ["task", "control_fraction", "step", "states", "seed"]
 
@@ -133,7 +133,17 @@ def run(args: Args) -> pd.DataFrame:
     return frame[(frame.states == args.states) & (frame.seed == args.seed) & (frame.step <= args.horizon)]
 
 
+def command(args: Args) -> Command:
+    """The command that makes this report (its rows reused): the markdown prints it, the metadata lists it."""
+    return Command("harness.mjx_agreement", [
+        "--task", args.task, "--states", str(args.states), "--horizon", str(args.horizon), "--control-fractions",
+        args.control_fractions, "--seed", str(args.seed)])
+
+
 def write_report(args: Args, frame: pd.DataFrame) -> None:
+    """The markdown (settings, the per-fraction and step table) and the metadata (``records.write_metadata``: no
+    scenario, no J)."""
+    made_by = command(args)
     task = tasks.make(args.task)
     stem = os.path.join(args.out, f"mjx_agreement_{args.task}")
     medians = [f"median_{name}" for name in task.state_names]
@@ -146,8 +156,7 @@ def write_report(args: Args, frame: pd.DataFrame) -> None:
         "",
         f"**{label}.**" if task.mjcf_label else f"Model: {label}.",
         "",
-        f"Command: `python -m harness.mjx_agreement --task {args.task} --states {args.states} "
-        f"--horizon {args.horizon} --control-fractions {args.control_fractions} --seed {args.seed}`",
+        f"Command: `{made_by.text}`",
         "",
         f"- {args.states} initial states from the task's initial distribution; each gets random controls, "
         "uniform over the given fraction of every control's range, held for one control period each; "
@@ -165,6 +174,7 @@ def write_report(args: Args, frame: pd.DataFrame) -> None:
     ]
     with open(stem + ".md", "w") as f:
         f.write("\n".join(lines))
+    write_metadata(stem, made_by, None, [])
 
 
 def main(argv=None) -> None:
@@ -172,7 +182,7 @@ def main(argv=None) -> None:
     jax.config.update("jax_enable_x64", True)
     frame = run(args)
     write_report(args, frame)
-    print(f"wrote {os.path.join(args.out, f'mjx_agreement_{args.task}')}.{{csv,md}}", file=sys.stderr)
+    print(f"wrote {os.path.join(args.out, f'mjx_agreement_{args.task}')}.{{csv,md,json}}", file=sys.stderr)
 
 
 if __name__ == "__main__":

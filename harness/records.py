@@ -4,7 +4,8 @@ Every experiment appends a row as soon as a measurement is done, and on a rerun 
 measurements whose key (the values of ``key_columns``) is already in the file, so an
 interrupted run loses nothing it computed. Long computations that yield their rows only at
 the end (a batch of learning runs) save their state between steps with ``save_state``: plain
-arrays and JSON in one ``.npz``, never a pickle of the project's classes.
+arrays and JSON in one ``.npz``, never a pickle of the project's classes. Each report's
+``{stem}.json`` (``write_metadata``) says, as plain data, what made it.
 """
 
 from __future__ import annotations
@@ -13,11 +14,14 @@ import contextlib
 import fcntl
 import functools
 import hashlib
+import importlib.metadata
 import json
 import os
 import pickle
+import shlex
 import subprocess
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
@@ -108,6 +112,62 @@ def load_state(path: str) -> tuple[dict[str, np.ndarray], dict] | None:
         raise ValueError(f"{path}: saved state of schema_version {meta.get('schema_version')!r}, this code reads "
                          f"{STATE_SCHEMA_VERSION}")
     return arrays, meta
+
+
+METADATA_SCHEMA_VERSION = 1
+"""Version of ``write_metadata``'s layout."""
+LIBRARIES = ("jax", "jaxlib", "numpy", "mujoco", "mujoco-mjx")
+"""The libraries whose versions a report's metadata records (those installed)."""
+
+
+class Command(NamedTuple):
+    """A report's command, ``python -m MODULE ARGV...``: its markdown prints ``text``, its metadata the list."""
+
+    module: str
+    argv: list[str]
+
+    @property
+    def text(self) -> str:
+        return f"python -m {self.module} {shlex.join(self.argv)}"
+
+
+def library_versions() -> dict[str, str]:
+    """``LIBRARIES`` name -> installed version, for those installed."""
+    versions = {}
+    for name in LIBRARIES:
+        with contextlib.suppress(importlib.metadata.PackageNotFoundError):
+            versions[name] = importlib.metadata.version(name)
+    return versions
+
+
+def write_metadata(stem: str, command: Command, scenario: str | None, objective: Sequence[dict]) -> None:
+    """``{stem}.json`` beside the report ``{stem}.{csv,md}``, what made it as plain data (``harness.reproduce``
+    reads it): ``schema_version``, ``command`` {module, argv}, ``scenario`` (the content hash of the rows
+    shown; null where the experiment has none), ``objective`` (the J the report prints: [{model,
+    delta_theta, value, ci}], ci the 95 % half-width), ``code_version`` and ``libraries`` (name -> version).
+    Written atomically, sorted keys."""
+    meta = dict(schema_version=METADATA_SCHEMA_VERSION, command=command._asdict(), scenario=scenario,
+                objective=list(objective), code_version=code_version(), libraries=library_versions())
+    with open(stem + ".json.tmp", "w") as f:
+        f.write(json.dumps(meta, sort_keys=True, indent=1) + "\n")
+    os.replace(stem + ".json.tmp", stem + ".json")
+
+
+def read_metadata(path: str) -> dict:
+    """The metadata ``write_metadata`` wrote at ``path``; a missing or unreadable file, another
+    schema_version or a missing entry raises a one-line ValueError."""
+    try:
+        with open(path) as f:
+            meta = json.load(f)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{path} is not readable report metadata ({' '.join(str(error).split())})") from None
+    version = meta.get("schema_version") if isinstance(meta, dict) else None
+    if version != METADATA_SCHEMA_VERSION:
+        raise ValueError(f"{path}: report metadata of schema_version {version!r}, this code reads "
+                         f"{METADATA_SCHEMA_VERSION}")
+    if missing := sorted({"command", "scenario", "objective"} - set(meta)):
+        raise ValueError(f"{path}: report metadata lacks {', '.join(missing)}")
+    return meta
 
 
 def load_legacy_pickle(path: str) -> Any:

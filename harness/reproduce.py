@@ -2,8 +2,9 @@
 
     python -m harness.reproduce [--checks variance_cartpole_gp,...|all] [--reports reports] [--out DIR]
 
-Each check reruns one committed report's own command (the "Command:" line of its markdown;
-for a learning table, the ``harness.learn`` command its rows were made with) at the smaller
+Each check reruns one committed report's own command (the ``command`` of its metadata,
+``{stem}.json``, ``records.write_metadata``; for a learning table, the ``harness.learn`` command
+its rows were made with) at the smaller
 sizes listed in ``CHECKS``, into a fresh folder, then compares key numbers, committed against
 recomputed, each by a stated rule:
 
@@ -47,7 +48,7 @@ from scipy import stats
 
 import tasks
 from harness.cli import parse, run_command, str_list
-from harness.records import read_csv
+from harness.records import Command, read_csv, read_metadata
 from harness.success import final_evaluations, otsu_thresholds, wilson_interval
 
 
@@ -76,18 +77,19 @@ def variance_rule(name: str, committed: float, repeats_c: int, recomputed: float
                 agrees=bool(low <= ratio <= high))
 
 
-def read_text(path: str) -> str:
-    with open(path) as f:
-        return f.read()
-
-
-def report_command(md_path: str, text: str | None = None) -> tuple[str, list[str]]:
-    """The module and arguments of a report's "Command: `python -m MODULE ARGS`" line (``text``:
-    the report's markdown, if already read)."""
-    found = re.search(r"Command: `python -m ([\w.]+) ([^`]*)`", read_text(md_path) if text is None else text)
-    if found is None:
-        raise ValueError(f"{md_path} has no 'Command: `python -m ...`' line to rerun")
-    return found.group(1), shlex.split(found.group(2))
+def metadata(stem: str) -> dict:
+    """The committed report's metadata, ``{stem}.json`` (``records.read_metadata``); where it is missing, a
+    ValueError with the command that writes it: the report's own, which reuses its committed rows."""
+    if not os.path.exists(stem + ".json"):
+        shown = []
+        if os.path.exists(stem + ".md"):
+            with open(stem + ".md") as f:
+                shown = [line.split("`")[1] for line in f if line.startswith("Command: `")]
+        rerun = (f"{shown[0]} --out {shlex.quote(os.path.dirname(stem) or '.')}" if shown
+                 else f"the command on the Command: line of {stem}.md")
+        raise ValueError(f"{stem}.json is missing: write it with the report's own command, which reuses the "
+                         f"committed rows: {rerun}")
+    return read_metadata(stem + ".json")
 
 
 def with_flags(argv: list[str], flags: dict[str, str]) -> list[str]:
@@ -110,40 +112,36 @@ def flag_values(argv: list[str]) -> dict[str, str]:
     return {flag: value for flag, value in zip(argv[::2], argv[1::2])}
 
 
-def scenario_and_objective(committed_md: str, recomputed_md: str, recomputed_rows: pd.DataFrame) -> list[dict]:
-    """The content-hash row and one row per J printed by both reports ("a +- ci at delta theta = d")."""
-    texts = [read_text(path) for path in (committed_md, recomputed_md)]
-    committed_hash = re.search(r"Content hash ([0-9a-f, ]+) \(", texts[0])
-    recomputed_hash = ", ".join(sorted(map(str, recomputed_rows.scenario.unique())))
-    rows = [dict(quantity="scenario content hash", committed=committed_hash.group(1) if committed_hash else
-                 "(none: rows predate content hashes)", recomputed=recomputed_hash, rule="equal",
-                 agrees=bool(committed_hash and committed_hash.group(1) == recomputed_hash))]
-    pattern = r"J under the (\w+) model[^:]*: ([^\n]*)"
-    for (model, committed), (_, recomputed) in zip(re.findall(pattern, texts[0]), re.findall(pattern, texts[1])):
-        number = r"(-?\d+\.?\d*) \+- (\d+\.?\d*) at delta theta = (\d+(?:\.\d+)?)"
-        for c, r in zip(re.findall(number, committed), re.findall(number, recomputed)):
-            rows.append(mean_rule(f"J on {model}, delta theta {c[2]}", float(c[0]), float(c[1]), float(r[0]),
-                                  float(r[1])))
+def scenario_and_objective(committed: str, recomputed: str) -> list[dict]:
+    """The content-hash row and one row per J that both reports' metadata hold (same model and delta theta)."""
+    old, new = metadata(committed), metadata(recomputed)
+    rows = [dict(quantity="scenario content hash", committed=old["scenario"] or "(none)",
+                 recomputed=new["scenario"] or "(none)", rule="equal",
+                 agrees=bool(old["scenario"] and old["scenario"] == new["scenario"]))]
+    recomputed_j = {(j["model"], j["delta_theta"]): j for j in new["objective"]}
+    for c in old["objective"]:
+        if (r := recomputed_j.get((c["model"], c["delta_theta"]))) is not None:
+            rows.append(mean_rule(f"J on {c['model']}, delta theta {c['delta_theta']:g}", c["value"], c["ci"],
+                                  r["value"], r["ci"]))
     return rows
 
 
 def committed_rows(stem: str) -> pd.DataFrame:
     """The committed CSV's rows that its report shows: those with its command's settings (of
     seed, repeats, reference, fd_step, estimators and a single particle count: the ones the
-    CSV has as columns; defaults where the command leaves a flag out) and the scenario it names
-    (any, for rows that predate content hashes)."""
+    CSV has as columns; defaults where the command leaves a flag out) and its scenario (any,
+    where the metadata names none)."""
     rows = read_csv(stem + ".csv")
-    text = read_text(stem + ".md")
-    module, argv = report_command(stem + ".md", text)
-    tool = parse(importlib.import_module(module).Args, argv)
+    meta = metadata(stem)
+    command = Command(**meta["command"])
+    tool = parse(importlib.import_module(command.module).Args, command.argv)
     settings = {column: getattr(tool, attribute, None) for column, attribute in (
         ("seed", "seed"), ("repeats", "repeats"), ("reference", "reference_name"), ("fd_step", "fd_step"),
         ("estimators", "estimators"), ("particles", "particles"))}
     for column, value in settings.items():
         if column in rows and value is not None and (column != "particles" or isinstance(value, int)):
             rows = rows[rows[column] == value]
-    found = re.search(r"Content hash ([0-9a-f]+) \(", text)
-    return rows[rows.scenario == found.group(1)] if found else rows
+    return rows[rows.scenario == meta["scenario"]] if meta["scenario"] else rows
 
 
 def nothing_to_compare(what: str) -> list[dict]:
@@ -155,7 +153,7 @@ def compare_cells(committed: str, recomputed: str, flags: dict[str, str]) -> lis
     """Scenario, J, and each recomputed cell's variance (and, in a compare report, cosine with
     the reference gradient) against the committed cell's."""
     old, new = committed_rows(committed), read_csv(recomputed + ".csv")
-    rows = scenario_and_objective(committed + ".md", recomputed + ".md", new)
+    rows = scenario_and_objective(committed, recomputed)
     keys = ["model", "estimator", "particles"] + (["delta_theta"] if "delta_theta" in new else [])
     if old.duplicated(keys).any():
         raise ValueError(f"{committed}.csv has several rows per cell {keys} at its report's settings: "
@@ -177,7 +175,7 @@ def compare_landscape(committed: str, recomputed: str, flags: dict[str, str]) ->
     """Scenario, J, and per recomputed delta: J, the finite-difference slope and each
     estimator's directional derivative against the committed ones."""
     old, new = committed_rows(committed), read_csv(recomputed + ".csv")
-    rows = scenario_and_objective(committed + ".md", recomputed + ".md", new)
+    rows = scenario_and_objective(committed, recomputed)
     quantities = [("value", "value_ci"), ("fd_slope", "fd_slope_ci")] + [
         (f"{name}_grad", f"{name}_ci") for name in str_list(flags["--estimators"])]
     merged = old.assign(delta=old.delta_theta.round(6)).merge(new.assign(delta=new.delta_theta.round(6)), on="delta",
@@ -295,7 +293,7 @@ def recompute(name: str, args: Args, out: str) -> tuple[str, dict[str, str]]:
         argv, _ = learn_command(committed, check.resize["--methods"], int(check.resize["--repeats"]))
         module = "harness.learn"
     else:
-        module, argv = report_command(committed + ".md")
+        module, argv = Command(**metadata(committed)["command"])
         argv = with_flags(argv, check.resize)
     argv = with_flags(argv, {"--out": out})
     print(f"reproduce {name}: python -m {module} {shlex.join(argv)}", file=sys.stderr, flush=True)
@@ -305,7 +303,11 @@ def recompute(name: str, args: Args, out: str) -> tuple[str, dict[str, str]]:
 
 def run(args: Args) -> pd.DataFrame:
     """Every check of ``args`` in turn (writing ``reproduce.csv`` after each); returns the table
-    and writes ``reproduce.md`` with the commands run and how many quantities agree."""
+    and writes ``reproduce.md`` with the commands run and how many quantities agree. A report without its
+    metadata fails before anything is computed."""
+    for name in args.names:
+        if not name.startswith("learn_"):
+            metadata(os.path.join(args.reports, name))
     out = args.out or tempfile.mkdtemp(prefix="reproduce_")
     rows, commands = [], []
     for name in args.names:

@@ -351,23 +351,24 @@ class ExperimentArgs:
         settings)."""
         return os.path.basename(self.scenario_file or cache_path(self.scenario, ""))
 
-    def scenario_lines(self, where: dict[str, "Setting"], rows, note: str = "") -> list[str]:
+    def scenario_lines(self, where: dict[str, "Setting"], rows, objective: list[dict], note: str = "") -> list[str]:
         """The report's lines on the scenario: how it was built, where it came from (pinned or
         built under the current code), the content hash of the rows shown; then J under each
-        model of ``where`` (``objective_line``)."""
+        model of ``where`` (``objective``: ``objective_values``)."""
         hashes = ", ".join(sorted(map(str, rows.scenario.unique())))
         source = next(iter(where.values())).source
         built = "" if self.scenario_file else f"{self.scenario.describe()}{note}; "
         return [f"- Scenario: {built}{source}. Content hash {hashes} (theta0, the "
                 "direction and the GP posterior, at float32 precision): every row shown was computed on it.",
-                *[objective_line(setting, model, self.seed) for model, setting in where.items()]]
+                *[objective_line(model, objective, setting.problem.horizon) for model, setting in where.items()]]
 
-    def scenario_flags(self) -> str:
+    def scenario_flags(self) -> list[str]:
+        """The flags that name the scenario, as a command's arguments."""
         if self.scenario_file:
-            return f"--scenario-file {self.scenario_file}"
-        return (f"--scenario-trials {self.scenario_trials} --scenario-steps {self.scenario_steps} "
-                f"--scenario-particles {self.scenario_particles} --scenario-estimator {self.scenario_estimator}"
-                + (" --rebuild-scenario" if self.rebuild_scenario else ""))
+            return ["--scenario-file", self.scenario_file]
+        return (["--scenario-trials", str(self.scenario_trials), "--scenario-steps", str(self.scenario_steps),
+                 "--scenario-particles", str(self.scenario_particles), "--scenario-estimator", self.scenario_estimator]
+                + (["--rebuild-scenario"] if self.rebuild_scenario else []))
 
 
 class Setting(NamedTuple):
@@ -398,19 +399,29 @@ OBJECTIVE_DELTAS = (0.0, 1.5)
 OBJECTIVE_PARTICLES = 2000
 
 
-def objective_line(where: Setting, model: str, seed: int) -> str:
-    """A report line with J (mean return of ``OBJECTIVE_PARTICLES`` particles, 95 % interval)
-    under ``model`` at theta0 and at theta0 + 1.5 d, and the maximum J (the horizon: the
-    cost is at most 1 per step). Issue 20's criterion for a scenario that swings up: J at
-    theta0 between 10 and 25 of 30 on the cart-pole's GP."""
+def objective_values(where: dict[str, Setting], seed: int) -> list[dict]:
+    """J under each model of ``where`` at theta0 + delta d, delta in ``OBJECTIVE_DELTAS``: [{model, delta_theta,
+    value, ci}], the mean return of ``OBJECTIVE_PARTICLES`` particles (the seed's "objective" stream) and its 95 %
+    half-width ``1.96 sd / sqrt(P)``."""
     returns = jax.jit(particle_returns, static_argnums=3)
     key = keys.stream(jax.random.key(seed), "objective")
-    parts = []
-    for delta in OBJECTIVE_DELTAS:
-        r = np.asarray(returns(where.problem, where.theta(delta), key, OBJECTIVE_PARTICLES))
-        parts.append(f"{r.mean():.2f} +- {1.96 * r.std(ddof=1) / np.sqrt(len(r)):.2f} at delta theta = {delta:g}")
+    found = []
+    for model, setting in where.items():
+        for delta in OBJECTIVE_DELTAS:
+            r = np.asarray(returns(setting.problem, setting.theta(delta), key, OBJECTIVE_PARTICLES))
+            found.append(dict(model=model, delta_theta=float(delta), value=float(r.mean()),
+                              ci=float(1.96 * r.std(ddof=1) / np.sqrt(len(r)))))
+    return found
+
+
+def objective_line(model: str, objective: list[dict], horizon: int) -> str:
+    """A report line with J under ``model`` (``objective_values``' entries of that model) and the maximum J (the
+    horizon: the cost is at most 1 per step). Issue 20's criterion for a scenario that swings up: J at theta0
+    between 10 and 25 of 30 on the cart-pole's GP."""
+    parts = [f"{o['value']:.2f} +- {o['ci']:.2f} at delta theta = {o['delta_theta']:g}" for o in objective
+             if o["model"] == model]
     return (f"- J under the {model} model ({OBJECTIVE_PARTICLES} particles, 95 % interval; at most "
-            f"{where.problem.horizon}): {'; '.join(parts)}.")
+            f"{horizon}): {'; '.join(parts)}.")
 
 
 def unit_direction(theta, key: jax.Array):

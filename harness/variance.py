@@ -7,8 +7,8 @@ At theta0 (from the cached scenario, see ``harness.scenario``) and at ``theta0 +
 along a fixed random unit direction d, each estimator's gradient is estimated ``repeats``
 times with independent keys; the variance is the trace of the covariance of those estimates.
 Each finished cell is appended to the CSV at once, and a rerun skips the cells already there,
-so an interrupted run loses nothing. Writes ``variance_{task}_{model}.csv``, ``.md`` and
-``.png`` under ``--out``.
+so an interrupted run loses nothing. Writes ``variance_{task}_{model}.csv``, ``.md``, ``.png``
+and ``.json`` (what made it: ``records.write_metadata``) under ``--out``.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import estimators
 from harness import keys
 from harness import scenario as scenario_lib
 from harness.cli import Progress, check_sizes, float_list, int_list, parse, run_command, str_list
-from harness.records import ResultTable
+from harness.records import Command, ResultTable, write_metadata
 
 KEY_COLUMNS = ["task", "model", "estimator", "particles", "delta_theta", "repeats", "seed", "scenario"]
 BIW_BASELINE_VARIANTS = ("biw_lr_pairwise", "biw_lr_no_baseline")
@@ -206,8 +206,18 @@ def findings(table: pd.DataFrame) -> list[str]:
     return lines
 
 
-def write_report(args: Args, table: pd.DataFrame, scenario_lines: list[str]) -> None:
-    """Markdown (settings, variance table, findings) and the log-log PNG."""
+def command(args: Args) -> Command:
+    """The command that makes this report (its rows reused): the markdown prints it, the metadata lists it."""
+    return Command("harness.variance", [
+        "--task", args.task, "--model", args.model, "--estimators", args.estimators,
+        "--particles", ",".join(map(str, args.particle_counts)), "--repeats", str(args.num_repeats),
+        "--delta-theta", args.delta_theta, "--seed", str(args.seed), *args.scenario_flags()])
+
+
+def write_report(args: Args, table: pd.DataFrame, scenario_lines: list[str], objective: list[dict]) -> None:
+    """Markdown (settings, variance table, findings), the log-log PNG and the metadata (``records.write_metadata``;
+    ``objective``: the J of ``scenario_lines``, ``scenario.objective_values``)."""
+    made_by = command(args)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -233,10 +243,7 @@ def write_report(args: Args, table: pd.DataFrame, scenario_lines: list[str]) -> 
     lines = [
         f"# Gradient variance: {args.task}, {args.model} model",
         "",
-        f"Command: `python -m harness.variance --task {args.task} --model {args.model} "
-        f"--estimators {args.estimators} --particles {','.join(map(str, args.particle_counts))} "
-        f"--repeats {args.num_repeats} --delta-theta {args.delta_theta} --seed {args.seed} "
-        f"{args.scenario_flags()}`",
+        f"Command: `{made_by.text}`",
         "",
         *scenario_lib.model_labels(args.task, [args.model]),
         *scenario_lines,
@@ -258,14 +265,17 @@ def write_report(args: Args, table: pd.DataFrame, scenario_lines: list[str]) -> 
     ]
     with open(stem + ".md", "w") as f:
         f.write("\n".join(lines))
+    write_metadata(stem, made_by, str(table.scenario.iloc[0]), objective)
 
 
 def main(argv=None) -> None:
     args = parse(Args, argv)
     jax.config.update("jax_enable_x64", args.x64)
     table, where = run(args)
-    write_report(args, table, args.scenario_lines({args.model: where}, table))
-    print(f"wrote {os.path.join(args.out, f'variance_{args.task}_{args.model}')}.{{csv,md,png}}", file=sys.stderr)
+    by_model = {args.model: where}
+    objective = scenario_lib.objective_values(by_model, args.seed)
+    write_report(args, table, args.scenario_lines(by_model, table, objective), objective)
+    print(f"wrote {os.path.join(args.out, f'variance_{args.task}_{args.model}')}.{{csv,md,png,json}}", file=sys.stderr)
 
 
 if __name__ == "__main__":

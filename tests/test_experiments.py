@@ -156,7 +156,7 @@ def test_the_bench_targets_are_judged_on_the_runs_own_numbers():
     assert "(29.2 GFLOP) take 0.146 s at this run's float32 matmul rate, so the target asks for a roofline " \
            "fraction of 0.73" in text
     assert "RP's roofline fraction, float32, P = 300: 0.77 (goal 0.4: met)" in text
-    assert "projected: 12.5 min (target 12 min: not met)" in text and "nothing else running): 11.5 min." in text
+    assert "projected: 12.5 min (target 12 min: not met)" in text and "per-trial seconds in its CSV): 11.5 min." in text
 
 
 def test_learning_time_projection_sums_the_quadratic_over_trials():

@@ -9,6 +9,7 @@ from scipy import stats
 import tasks
 from harness import learn, reproduce
 from harness.cli import parse
+from harness.records import Command, write_metadata
 
 REPORTS = os.path.join(os.path.dirname(__file__), "..", "reports")
 
@@ -43,14 +44,13 @@ def test_learning_command_rebuilds_the_committed_rows_key():
 
 
 def write_cells(stem, content_hash, variance, j=(20.0, 0.5)):
-    """A variance report's CSV and markdown as harness.variance writes them (the parts read)."""
+    """A variance report's CSV and metadata as harness.variance writes them (the parts read)."""
     pd.DataFrame(dict(task="cartpole", model="gp", estimator=["rp", "tp"], particles=10, delta_theta=0.0,
                       repeats=10, seed=0, scenario=content_hash, variance=variance)).to_csv(stem + ".csv", index=False)
-    with open(stem + ".md", "w") as f:
-        f.write(f"Command: `python -m harness.variance --task cartpole --repeats 10 --seed 0`\n"
-                f"- Scenario: ... Content hash {content_hash} (theta0, ...)\n"
-                f"- J under the gp model (2000 particles, 95 % interval; at most 30): {j[0]} +- {j[1]} at delta theta "
-                f"= 0; 25.0 +- 0.5 at delta theta = 1.5.\n")
+    objective = [dict(model="gp", delta_theta=0.0, value=j[0], ci=j[1]),
+                 dict(model="gp", delta_theta=1.5, value=25.0, ci=0.5)]
+    write_metadata(stem, Command("harness.variance", ["--task", "cartpole", "--repeats", "10", "--seed", "0"]),
+                   content_hash, objective)
 
 
 def test_compare_cells_flags_a_changed_scenario_and_variance(tmp_path):
@@ -73,11 +73,46 @@ def test_committed_rows_are_those_of_the_report_s_reference(tmp_path):
     pd.DataFrame(dict(task="cartpole", model="gp", estimator="rp", particles=10, repeats=20, seed=0, scenario="abc123",
                       reference=["jax-lr-P1000-R30", "jax-lr-P1000-R100"], variance=[1.0, 2.0])
                  ).to_csv(stem + ".csv", index=False)
-    with open(stem + ".md", "w") as f:
-        f.write("Command: `python -m harness.compare --task cartpole --repeats 20 --reference-repeats 100 --seed 0`\n"
-                "- Scenario: ... Content hash abc123 (theta0, ...)\n")
+    write_metadata(stem, Command("harness.compare", ["--task", "cartpole", "--repeats", "20", "--reference-repeats",
+                                                     "100", "--seed", "0"]), "abc123", [])
     rows = reproduce.committed_rows(stem)
     assert rows.reference.tolist() == ["jax-lr-P1000-R100"] and rows.variance.tolist() == [2.0]
+
+
+def test_reproduce_reads_the_metadata_not_the_markdown(tmp_path):
+    """The command, content hash and J come from ``{stem}.json``: a markdown that says otherwise
+    is not read."""
+    committed, recomputed = str(tmp_path / "committed"), str(tmp_path / "recomputed")
+    write_cells(committed, "abc123", [1.0, 2.0])
+    write_cells(recomputed, "abc123", [1.0, 2.0])
+    with open(committed + ".md", "w") as f:
+        f.write("Command: `python -m harness.variance --task cartpole --repeats 30 --seed 0`\n"
+                "- Scenario: ... Content hash def456 (theta0, ...)\n"
+                "- J under the gp model (2000 particles, 95 % interval; at most 30): 1.00 +- 0.01 at delta theta = 0\n")
+    assert len(reproduce.committed_rows(committed)) == 2  # repeats 10 and abc123, as the metadata says
+    rows = {row["quantity"]: row for row in reproduce.scenario_and_objective(committed, recomputed)}
+    assert rows["scenario content hash"]["committed"] == "abc123" and rows["J on gp, delta theta 0"]["agrees"]
+
+
+def test_a_report_without_metadata_is_refused_with_the_command_that_writes_it(tmp_path):
+    stem = str(tmp_path / "variance_cartpole_gp")
+    write_cells(stem, "abc123", [1.0, 2.0])
+    os.remove(stem + ".json")
+    with open(stem + ".md", "w") as f:
+        f.write("# Gradient variance\n\nCommand: `python -m harness.variance --task cartpole --repeats 10`\n")
+    with pytest.raises(ValueError) as error:
+        reproduce.committed_rows(stem)
+    assert str(error.value) == (f"{stem}.json is missing: write it with the report's own command, which reuses the "
+                                f"committed rows: python -m harness.variance --task cartpole --repeats 10 "
+                                f"--out {tmp_path}")
+
+
+def test_reproduce_refuses_a_report_without_metadata_before_computing_anything(tmp_path):
+    write_cells(str(tmp_path / "variance_cartpole_gp"), "abc123", [1.0, 2.0])
+    with pytest.raises(ValueError, match="compare_cartpole.json is missing"):
+        reproduce.run(reproduce.Args(checks="variance_cartpole_gp,compare_cartpole", reports=str(tmp_path),
+                                     out=str(tmp_path / "out")))
+    assert not os.path.exists(tmp_path / "out")
 
 
 def test_unknown_check_is_refused():

@@ -47,3 +47,8 @@ def test_the_learning_claims_come_from_the_csvs_once_they_are_in_reports(tmp_pat
                                                                        index=False)
     claim_b = summary.learning_findings(str(tmp_path))[0][2]
     assert claim_b.verdict.startswith("not measured (no other method of the paper")
+
+
+def test_the_readme_stays_one_page():
+    """What a new user reads first (issue: a README of at most 12 KB; results live in reports/ and docs/)."""
+    assert os.path.getsize(os.path.join(ROOT, "README.md")) <= 12 * 1024
