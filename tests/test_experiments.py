@@ -117,10 +117,13 @@ def test_bad_arguments(argv, message):
         variance.main(argv)
 
 
-def test_variance_runs_on_the_unicycle(tmp_path):
-    variance.main(TINY + ["--task", "unicycle", "--estimators", "rp,tp", "--particles", "5", "--out", str(tmp_path)])
+def test_variance_runs_on_the_unicycle_at_its_pinned_scenario(tmp_path):
+    """The unicycle's own command (its pinned scenario: no build) at a tiny size."""
+    variance.main(["--task", "unicycle", "--estimators", "rp,tp", "--particles", "5", "--repeats", "2",
+                   "--delta-theta", "0", "--out", str(tmp_path)])
     table = pd.read_csv(tmp_path / "variance_unicycle_gp.csv")
     assert set(table.estimator) == {"rp", "tp"} and np.isfinite(table.variance).all()
+    assert "the pinned" in (tmp_path / "variance_unicycle_gp.md").read_text()
 
 
 def test_bench_runs_tiny(tmp_path):

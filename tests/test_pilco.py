@@ -3,6 +3,7 @@ its state distributions and expected costs against a large Monte Carlo sample of
 model's particle rollout."""
 
 import dataclasses
+import functools
 
 import jax
 import jax.flatten_util
@@ -12,6 +13,7 @@ import pytest
 
 import estimators
 import tasks
+from conftest import OPTIMISED
 from estimators.base import next_state_distribution, task_problem
 from estimators.pilco import pilco_objective, propagate
 from models.form_moments import expected_cost
@@ -90,7 +92,7 @@ MC_CHUNK = 10_000
 def monte_carlo_and_moments(problem, theta, steps: int, num: int = 200_000):
     """Per step: (MC mean, MC sd) of the particle rollout (key 1) and (mean, sd) from PILCO."""
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=OPTIMISED)
     def both(key, problem, theta):  # the GP as an argument, not a constant for XLA to fold
         net = problem.policy.prepare(theta)
         s = jax.vmap(problem.initial_state)(jax.random.split(key, num))
