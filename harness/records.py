@@ -140,17 +140,31 @@ def library_versions() -> dict[str, str]:
     return versions
 
 
+OBJECTIVE_DIGITS = 6
+"""Significant digits of the J values in a report's metadata: their round-off differs across machines."""
+
+
 def write_metadata(stem: str, command: Command, scenario: str | None, objective: Sequence[dict]) -> None:
     """``{stem}.json`` beside the report ``{stem}.{csv,md}``, what made it as plain data (``harness.reproduce``
     reads it): ``schema_version``, ``command`` {module, argv}, ``scenario`` (the content hash of the rows
     shown; null where the experiment has none), ``objective`` (the J the report prints: [{model,
-    delta_theta, value, ci}], ci the 95 % half-width), ``code_version`` and ``libraries`` (name -> version).
-    Written atomically, sorted keys."""
-    meta = dict(schema_version=METADATA_SCHEMA_VERSION, command=command._asdict(), scenario=scenario,
-                objective=list(objective), code_version=code_version(), libraries=library_versions())
-    with open(stem + ".json.tmp", "w") as f:
+    delta_theta, value, ci}], ci the 95 % half-width, to ``OBJECTIVE_DIGITS`` digits), ``code_version`` and
+    ``libraries`` (name -> version) of the process that first wrote this content: a rerun that reuses the
+    rows and finds the same command, scenario and J leaves the file as it is. Written atomically, sorted keys."""
+    content = dict(command=command._asdict(), scenario=scenario,
+                   objective=[{name: float(f"{v:.{OBJECTIVE_DIGITS}g}") if name in ("value", "ci") else v
+                               for name, v in o.items()} for o in objective])
+    path = stem + ".json"
+    if os.path.exists(path):
+        with contextlib.suppress(ValueError):
+            old = read_metadata(path)
+            if {name: old[name] for name in content} == json.loads(json.dumps(content)):
+                return
+    meta = dict(schema_version=METADATA_SCHEMA_VERSION, **content, code_version=code_version(),
+                libraries=library_versions())
+    with open(path + ".tmp", "w") as f:
         f.write(json.dumps(meta, sort_keys=True, indent=1) + "\n")
-    os.replace(stem + ".json.tmp", stem + ".json")
+    os.replace(path + ".tmp", path)
 
 
 def read_metadata(path: str) -> dict:

@@ -35,6 +35,12 @@ def test_metadata_round_trips_as_sorted_plain_json(tmp_path):
     assert Command(**meta["command"]) == command and meta["objective"] == objective
     assert meta["code_version"] == records.code_version() and {"jax", "jaxlib", "numpy"} <= set(meta["libraries"])
     assert shlex.split(command.text) == ["python", "-m", "harness.variance", *command.argv]
+    with open(stem + ".json", "w") as f:  # as written by other code: a rerun with the same content keeps it
+        f.write(text.replace(meta["code_version"], "older"))
+    write_metadata(stem, command, "06b721e74402", [dict(o, value=o["value"] + 1e-12) for o in objective])
+    assert read_metadata(stem + ".json")["code_version"] == "older"  # J's round-off (below 6 digits) too
+    write_metadata(stem, command, "06b721e74402", [dict(o, value=o["value"] + 0.01) for o in objective])
+    assert read_metadata(stem + ".json")["code_version"] == records.code_version()  # other J: rewritten
 
 
 @pytest.mark.parametrize("content, message", [
