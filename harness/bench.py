@@ -38,7 +38,7 @@ from harness.cli import Progress, int_list, parse, run_command, str_list
 from harness import bench_learning, keys
 from harness.episodic import add_episode, cast_floating
 from harness.methods import DEFAULT_METHODS
-from harness.records import code_version, read_csv
+from harness.records import Command, code_version, read_csv, read_metadata, write_metadata
 from models import gp
 from tasks.rollout import run_episode
 
@@ -74,7 +74,8 @@ class Args:
     out: str = "reports"
     """Folder for bench.md and the CSVs."""
     report_only: bool = False
-    """Time nothing: rewrite bench.md from the CSVs in --out (and the whole run in {out}/bench_whole, if any)."""
+    """Time nothing: rewrite bench.md from the CSVs in --out, with the flags of the run that timed them (its
+    bench.json; CSVs of older code without one take the flags given here), and the whole run in {out}/bench_whole."""
 
 
 def matmul_rate(n: int = 2048, repeats: int = 5, dtype=jnp.float64) -> float:
@@ -152,7 +153,7 @@ def complete_older_csv(out: str, num_points: int) -> None:
     path = os.path.join(out, "bench.csv")
     table = read_csv(path)
     filled = dict(matmul_gflops=table.gflop / (table.roofline_fraction * table.median_s), gp_points=num_points,
-                  machine=this_machine())
+                  machine="not recorded (timed by older code)")
     if missing := {name: value for name, value in filled.items() if name not in table}:
         table.assign(**missing).to_csv(path, index=False)
 
@@ -181,23 +182,41 @@ def target_lines(table: pd.DataFrame, learning: pd.DataFrame | None, whole: floa
         lines.append(f"- RP's roofline fraction, float32, P = 300: {at.roofline_fraction['rp']:.2f} (goal "
                      f"{TARGETS['rp_roofline']:.1f}: {'met' if at.roofline_fraction['rp'] >= TARGETS['rp_roofline'] else 'not met'}).")
     if learning is not None:
-        sweep_setting = learning[(learning.method == "tp") & (learning.dtype == "float32") & (learning.gp != "full")]
+        sweep_setting = learning[(learning.method == "tp") & (learning.dtype == "float32") & (learning.gp != "full")
+                                 & (learning.rbf == "direct")]
         if len(sweep_setting):
             projected = float(sweep_setting.total_min.iloc[0])
             lines.append(f"- A paper-setting TP experiment (float32 rollouts, FITC past 300 points: the sweep's "
                          f"settings), projected: {projected:.1f} min (target {TARGETS['tp_experiment_min']:g} min: "
                          f"{'met' if projected <= TARGETS['tp_experiment_min'] else 'not met'}).")
     command = f"python -m harness.learn {WHOLE_RUN_FLAGS} --out reports/{WHOLE_RUN}"
-    lines.append(f"- The same experiment timed whole (`{command}`, 2 cores; per-trial seconds in its CSV): "
+    lines.append(f"- The same experiment timed whole (`{command}`; seconds since its start after each trial in its "
+                 "CSV): "
                  + (f"{whole:.1f} min." if whole is not None else "not run yet."))
     return lines + [""]
+
+
+def command(args: Args) -> Command:
+    """The flags of a timing run, as its report and metadata (``bench.json``) give them."""
+    return Command("harness.bench", [
+        "--estimators", args.estimators, "--particles", args.particles, "--repeats", str(args.repeats),
+        "--trials", str(args.trials), "--gp-steps", str(args.gp_steps), "--seed", str(args.seed),
+        "--dtypes", args.dtypes, "--learning-methods", args.learning_methods,
+        "--float32-learning-methods", args.float32_learning_methods,
+        "--pseudo-input-learning-methods", args.pseudo_input_learning_methods,
+        "--fitc-learning-methods", args.fitc_learning_methods,
+        "--fitc-float32-learning-methods", args.fitc_float32_learning_methods])
 
 
 def main(argv=None) -> None:
     args = parse(Args, argv)
     if args.report_only:
-        complete_older_csv(args.out, args.trials * tasks.make("cartpole").horizon)
-        return write_report(args, *saved_results(args.out))
+        stem = os.path.join(args.out, "bench")
+        if not os.path.exists(stem + ".json"):  # CSVs of older code: the flags given here are taken as the run's
+            write_metadata(stem, command(args), None, [])
+        run = parse(Args, read_metadata(stem + ".json")["command"]["argv"] + ["--out", args.out])
+        complete_older_csv(args.out, run.trials * tasks.make("cartpole").horizon)
+        return write_report(run, *saved_results(args.out))
     version = code_version()  # the code loaded now, whatever is committed while this runs
     jax.config.update("jax_enable_x64", True)
     for name in str_list(args.estimators):
@@ -229,6 +248,7 @@ def main(argv=None) -> None:
                                           str_list(args.fitc_learning_methods),
                                           str_list(args.fitc_float32_learning_methods), seed=args.seed)
         learning.assign(code_version=version).to_csv(os.path.join(args.out, "bench_learning.csv"), index=False)
+    write_metadata(os.path.join(args.out, "bench"), command(args), None, [])
     write_report(args, table, learning)
 
 
@@ -244,12 +264,7 @@ def write_report(args: Args, table: pd.DataFrame, learning: pd.DataFrame | None 
     lines = [
         "# Benchmark: one gradient estimate, cart-pole, GP model",
         "",
-        f"Command: `python -m harness.bench --particles {args.particles} --repeats {args.repeats} "
-        f"--trials {args.trials} --dtypes {args.dtypes} --learning-methods '{args.learning_methods}' "
-        f"--float32-learning-methods '{args.float32_learning_methods}' "
-        f"--pseudo-input-learning-methods '{args.pseudo_input_learning_methods}' "
-        f"--fitc-learning-methods '{args.fitc_learning_methods}' "
-        f"--fitc-float32-learning-methods '{args.fitc_float32_learning_methods}'`",
+        f"Command: `{command(args).text}`",
         "",
         f"- Machine: {table.machine.iloc[0]}.",
         f"- Setting: cart-pole `pipps` preset, T = {task.horizon}, GP with {table.gp_points.iloc[0]} training points "

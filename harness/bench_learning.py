@@ -27,7 +27,6 @@ inducing inputs), timed at trial 15's 450 rows, in those trials (an upper bound 
 from __future__ import annotations
 
 import dataclasses
-import glob
 import os
 import sys
 import time
@@ -157,13 +156,14 @@ def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods
 
 
 def whole_run(folder: str) -> float | None:
-    """Minutes of the learning experiment timed whole in ``folder`` (its CSV's last trial: ``seconds`` counts
-    from the run's start), or None if there is none or it has not finished."""
-    paths = glob.glob(os.path.join(folder, "learn_*.csv"))
-    if not paths:
+    """Minutes of the paper-setting TP experiment timed whole in ``folder`` (``bench.WHOLE_RUN_FLAGS``: its CSV's
+    TP rows at the paper preset with float32 rollouts and FITC; ``seconds`` counts from the run's start), or
+    None if there is none or it has not finished."""
+    path = os.path.join(folder, "learn_cartpole_angle_k1.csv")
+    if not os.path.exists(path):
         return None
-    [path] = paths
     rows = read_csv(path)
+    rows = rows[(rows.method == "tp") & rows.settings.str.contains("fitc300-rollout_f32", regex=False)]
     finished = rows.learned.sum() == PAPER_SETTINGS["learned_trials"]
     return float(rows.seconds.max()) / 60 if finished else None
 
@@ -181,7 +181,7 @@ def report_lines(table: pd.DataFrame) -> list[str]:
         f"trials, {settings['optimiser_steps']} optimiser steps with {settings['particles']} particles per trial "
         f"(PILCO: {settings['pilco_steps']} L-BFGS steps), GP fit {settings['gp_steps']} L-BFGS steps on the rows "
         f"held, {settings['eval_runs']} evaluation runs per trial.",
-        "- Projected from timed pieces (the sweep's TP setting is also timed whole once: the targets above): "
+        "- Projected from timed pieces (the sweep's TP setting can be timed whole: the targets above): "
         "seconds per optimiser step "
         f"measured at learned trials {', '.join(map(str, TIMED_TRIALS))} (30 t rows), interpolated "
         "quadratically in the rows and summed over the trials; the GP fits (`gp_fit_min`, all trials) likewise; "

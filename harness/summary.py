@@ -204,13 +204,17 @@ def chaos_scenario_claims(reports: str) -> list[Claim]:
                     f"{rp / value:.2g}", "rule holds" if found["holds"] else "rule fails: next repeat",
                     "[chaos_scenario](chaos_scenario.md)")]
     commands = found.get("reports", {})
-    if not commands:
-        return claims
-    written_to = commands["variance"][commands["variance"].index("--out") + 1]  # under the repository's reports/
-    out = os.path.join(reports, os.path.relpath(written_to, "reports"))
     where = "cartpole at a working policy"
-    if "variance" in commands and os.path.exists(os.path.join(out, "variance_cartpole_gp.csv")):
-        rows, _ = variance_rows(commands["variance"], out)
+
+    def written_to(argv: list[str]) -> str:  # the command's --out, under the repository's reports/
+        return os.path.join(reports, os.path.relpath(argv[argv.index("--out") + 1], "reports"))
+
+    if "variance" in commands and os.path.exists(os.path.join(written_to(commands["variance"]),
+                                                              "variance_cartpole_gp.csv")):
+        argv = commands["variance"]
+        scenario_file = argv[argv.index("--scenario-file") + 1]  # relative to the repository's root
+        argv = [os.path.join(ROOT, scenario_file) if a == scenario_file else a for a in argv]
+        rows, _ = variance_rows(argv, written_to(argv))
         link = "[chaos/variance_cartpole_gp](chaos/variance_cartpole_gp.md)"
         claims += gradient_claims(rows, where, link)
         var = rows.pivot_table(index="particles", columns=["estimator", "delta_theta"], values="variance")
@@ -220,17 +224,20 @@ def chaos_scenario_claims(reports: str) -> list[Claim]:
                             "TP and GR stay low where RP's variance explodes",
                             f"{ends} (P = {var.index.min()}-{var.index.max()})",
                             "numbers only: no rule was fixed before them", link))
-    if "landscape" in commands and os.path.exists(os.path.join(out, "landscape_cartpole_gp.csv")):
-        claims.append(lyapunov_claim(found, out, where))
+    if "landscape" in commands and os.path.exists(os.path.join(written_to(commands["landscape"]),
+                                                               "landscape_cartpole_gp.csv")):
+        claims.append(lyapunov_claim(found, commands["landscape"], written_to(commands["landscape"]), where))
     return claims
 
 
-def lyapunov_claim(found: dict, out: str, where: str) -> Claim:
-    """The landscape at the scenario (its CSV's rows at the scenario's content and particle count): the
-    finite-time Lyapunov exponent and RP_FS's variance along the line, and their rank correlation."""
+def lyapunov_claim(found: dict, argv: list[str], out: str, where: str) -> Claim:
+    """The landscape at the scenario (its CSV's rows at the scenario's content, particle count and the command
+    ``argv``'s seed): the finite-time Lyapunov exponent and RP_FS's variance along the line, their rank
+    correlation."""
     rows = read_csv(os.path.join(out, "landscape_cartpole_gp.csv"))
-    line = rows[(rows.scenario == found["content"]) & (rows.particles == found["particles"])].sort_values(
-        "delta_theta")
+    seed = int(argv[argv.index("--seed") + 1])
+    line = rows[(rows.scenario == found["content"]) & (rows.particles == found["particles"])
+                & (rows.seed == seed)].sort_values("delta_theta")
     ends = line.iloc[[0, -1]]
     rho = line.ftle_mean.corr(np.log(line.rp_fs_variance), method="spearman")
     return Claim(f"{where}: chaos (a positive Lyapunov exponent) where RP's variance rises",
@@ -313,6 +320,8 @@ def readme_with_table(readme: str, claims: list[Claim]) -> str:
 
 def speed_text(reports: str) -> str:
     """The README's speed section: ``harness.bench``'s targets, from its CSVs in ``reports``."""
+    if not os.path.exists(os.path.join(reports, "bench.csv")):
+        return "Not measured yet: `python -m harness.bench` writes reports/bench.md."
     table, learning = bench.saved_results(reports)
     lines = bench.target_lines(table, learning, bench_learning.whole_run(os.path.join(reports, bench.WHOLE_RUN)))
     return "\n".join(["From [reports/bench.md](reports/bench.md) (`python -m harness.bench`, on "
