@@ -162,9 +162,6 @@ TARGETS = dict(rp_float32_s=0.20, tp_float32_s=0.25, rp_roofline=0.4, tp_experim
 """Issue 47's targets at P = 300 and the bench's GP (450 points): seconds per RP and TP estimate in float32, RP's
 roofline fraction (a goal), and a paper-setting TP experiment (float32 rollouts, FITC past 300 points) in
 minutes on 2 cores."""
-WHOLE_RUN = "bench_whole"
-"""Folder (under --out) of the paper-setting TP experiment timed whole (``target_lines``' command)."""
-WHOLE_RUN_FLAGS = "--preset paper --methods tp --repeats 1 --rollout-float32 --gp-inducing 300"
 
 
 def target_lines(table: pd.DataFrame, learning: pd.DataFrame | None, whole: float | None) -> list[str]:
@@ -175,12 +172,13 @@ def target_lines(table: pd.DataFrame, learning: pd.DataFrame | None, whole: floa
         floor = at.gflop / at.matmul_gflops  # the flop model's seconds at the matmul rate
         for name in ("rp", "tp"):
             target = TARGETS[f"{name}_float32_s"]
-            lines.append(f"- {name.upper()}, float32, P = 300, N = {at.gp_points[name]}: {at.median_s[name]:.3f} s (target "
-                         f"{target:.2f} s: {'met' if at.median_s[name] <= target else 'not met'}); its flops alone "
-                         f"({at.gflop[name]:.1f} GFLOP) take {floor[name]:.3f} s at this run's float32 matmul rate, "
+            lines.append(f"- {name.upper()}, float32, P = 300, N = {at.gp_points[name]}: {at.median_s[name]:.3f} s "
+                         f"(target {target:.2f} s: {'met' if at.median_s[name] <= target else 'not met'}); its flops "
+                         f"alone ({at.gflop[name]:.1f} GFLOP) take {floor[name]:.3f} s at this run's float32 matmul rate, "
                          f"so the target asks for a roofline fraction of {floor[name] / target:.2f}.")
+        reached = at.roofline_fraction["rp"] >= TARGETS["rp_roofline"]
         lines.append(f"- RP's roofline fraction, float32, P = 300: {at.roofline_fraction['rp']:.2f} (goal "
-                     f"{TARGETS['rp_roofline']:.1f}: {'met' if at.roofline_fraction['rp'] >= TARGETS['rp_roofline'] else 'not met'}).")
+                     f"{TARGETS['rp_roofline']:.1f}: {'met' if reached else 'not met'}).")
     if learning is not None:
         sweep_setting = learning[(learning.method == "tp") & (learning.dtype == "float32") & (learning.gp != "full")
                                  & (learning.rbf == "direct")]
@@ -189,11 +187,16 @@ def target_lines(table: pd.DataFrame, learning: pd.DataFrame | None, whole: floa
             lines.append(f"- A paper-setting TP experiment (float32 rollouts, FITC past 300 points: the sweep's "
                          f"settings), projected: {projected:.1f} min (target {TARGETS['tp_experiment_min']:g} min: "
                          f"{'met' if projected <= TARGETS['tp_experiment_min'] else 'not met'}).")
-    command = f"python -m harness.learn {WHOLE_RUN_FLAGS} --out reports/{WHOLE_RUN}"
-    lines.append(f"- The same experiment timed whole (`{command}`; seconds since its start after each trial in its "
-                 "CSV): "
-                 + (f"{whole:.1f} min." if whole is not None else "not run yet."))
+    command = Command("harness.learn", [*bench_learning.WHOLE_RUN_ARGV, "--out",
+                                        f"reports/{bench_learning.WHOLE_RUN}"])
+    lines.append(f"- The same experiment timed whole (`{command.text}`; seconds since its start after each trial "
+                 "in its CSV): " + (f"{whole:.1f} min." if whole is not None else "not run yet."))
     return lines + [""]
+
+
+def report_targets(out: str, table: pd.DataFrame, learning: pd.DataFrame | None) -> list[str]:
+    """``target_lines`` with the whole run in ``{out}/bench_whole`` (``bench_learning.whole_run``)."""
+    return target_lines(table, learning, bench_learning.whole_run(os.path.join(out, bench_learning.WHOLE_RUN)))
 
 
 def command(args: Args) -> Command:
@@ -278,7 +281,7 @@ def write_report(args: Args, table: pd.DataFrame, learning: pd.DataFrame | None 
         "matmul rate over the time measured.",
         "",
     ]
-    lines += target_lines(table, learning, bench_learning.whole_run(os.path.join(args.out, WHOLE_RUN)))
+    lines += report_targets(args.out, table, learning)
     lines += ["## One gradient estimate", ""]
     for dtype in rates:
         median = table[table.dtype == dtype].pivot(index="estimator", columns="particles", values="median_s")

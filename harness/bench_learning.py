@@ -40,7 +40,8 @@ import tasks
 from estimators.base import task_problem
 from harness import keys
 from harness.episodic import add_episode, evaluate_policy, in_precision, policy_optimiser
-from harness.learn import PRESETS
+from harness.cli import parse, str_list
+from harness.learn import PRESETS, Args
 from harness.methods import METHODS, runnable
 from harness.records import read_csv
 from models import gp, sparse_gp
@@ -155,16 +156,24 @@ def measure(methods: list[str], float32_methods: list[str], pseudo_input_methods
     return pd.DataFrame(rows)
 
 
+WHOLE_RUN = "bench_whole"
+"""Folder (under the bench's --out) of the paper-setting TP experiment timed whole."""
+WHOLE_RUN_ARGV = ["--preset", "paper", "--methods", "tp", "--repeats", "1", "--rollout-float32",
+                  "--gp-inducing", "300"]
+"""Its ``harness.learn`` flags: the sweep's TP setting (float32 rollouts, FITC past 300 points), one repeat."""
+
+
 def whole_run(folder: str) -> float | None:
-    """Minutes of the paper-setting TP experiment timed whole in ``folder`` (``bench.WHOLE_RUN_FLAGS``: its CSV's
-    TP rows at the paper preset with float32 rollouts and FITC; ``seconds`` counts from the run's start), or
-    None if there is none or it has not finished."""
-    path = os.path.join(folder, "learn_cartpole_angle_k1.csv")
-    if not os.path.exists(path):
+    """Minutes of the experiment ``WHOLE_RUN_ARGV`` timed whole with ``--out folder`` (its CSV's rows of that
+    method and settings; ``seconds`` counts from the run's start), or None if there is none or it has not
+    finished."""
+    args = parse(Args, WHOLE_RUN_ARGV + ["--out", folder])
+    if not os.path.exists(args.stem + ".csv"):
         return None
-    rows = read_csv(path)
-    rows = rows[(rows.method == "tp") & rows.settings.str.contains("fitc300-rollout_f32", regex=False)]
-    finished = rows.learned.sum() == PAPER_SETTINGS["learned_trials"]
+    [method] = str_list(args.methods)
+    rows = read_csv(args.stem + ".csv")
+    rows = rows[(rows.method == method) & (rows.settings == args.settings_name(method))]
+    finished = rows.learned.sum() == args.settings["learned_trials"]
     return float(rows.seconds.max()) / 60 if finished else None
 
 

@@ -119,6 +119,26 @@ def float_list(text: str) -> list[float]:
         raise ValueError(f"expected comma-separated numbers such as 0,1.5; got {text!r}") from None
 
 
+def with_flags(argv: list[str], flags: dict[str, str]) -> list[str]:
+    """``argv`` with each ``--flag value`` of ``flags`` replaced, or appended if absent."""
+    out, skip = [], False
+    for item in argv:
+        if skip:
+            skip = False
+        elif item in flags:
+            skip = True
+        else:
+            out.append(item)
+    for flag, value in flags.items():
+        out += [flag, value]
+    return out
+
+
+def flag_values(argv: list[str]) -> dict[str, str]:
+    """``{"--flag": "value"}`` of an argument list whose flags all take one value."""
+    return {flag: value for flag, value in zip(argv[::2], argv[1::2])}
+
+
 def str_list(text: str) -> list[str]:
     return [x.strip() for x in text.split(",") if x.strip()]
 

@@ -47,7 +47,7 @@ import pandas as pd
 from scipy import stats
 
 import tasks
-from harness.cli import parse, run_command, str_list
+from harness.cli import flag_values, parse, run_command, str_list, with_flags
 from harness.records import Command, read_csv, read_metadata
 from harness.success import final_evaluations, otsu_thresholds, wilson_interval
 
@@ -90,26 +90,6 @@ def metadata(stem: str) -> dict:
         raise ValueError(f"{stem}.json is missing: write it with the report's own command, which reuses the "
                          f"committed rows: {rerun}")
     return read_metadata(stem + ".json")
-
-
-def with_flags(argv: list[str], flags: dict[str, str]) -> list[str]:
-    """``argv`` with each ``--flag value`` of ``flags`` replaced, or appended if absent."""
-    out, skip = [], False
-    for item in argv:
-        if skip:
-            skip = False
-        elif item in flags:
-            skip = True
-        else:
-            out.append(item)
-    for flag, value in flags.items():
-        out += [flag, value]
-    return out
-
-
-def flag_values(argv: list[str]) -> dict[str, str]:
-    """``{"--flag": "value"}`` of an argument list whose flags all take one value."""
-    return {flag: value for flag, value in zip(argv[::2], argv[1::2])}
 
 
 def scenario_and_objective(committed: str, recomputed: str) -> list[dict]:

@@ -32,9 +32,9 @@ import jax
 import numpy as np
 import pandas as pd
 
-from harness import bench, bench_learning, variance
+from harness import bench, variance
 from harness.claims import claim_beats, claim_lr_tp_degrade_least
-from harness.cli import parse, run_command
+from harness.cli import flag_values, parse, run_command, with_flags
 from harness.methods import METHODS, PAPER_RATES
 from harness.records import ROOT, read_csv
 from harness.success import success_rows
@@ -204,17 +204,14 @@ def chaos_scenario_claims(reports: str) -> list[Claim]:
                     f"{rp / value:.2g}", "rule holds" if found["holds"] else "rule fails: next repeat",
                     "[chaos_scenario](chaos_scenario.md)")]
     commands = found.get("reports", {})
+    flags = {name: flag_values(argv) for name, argv in commands.items()}
+    outs = {name: os.path.join(reports, os.path.relpath(given["--out"], "reports")) for name, given in flags.items()}
     where = "cartpole at a working policy"
-
-    def written_to(argv: list[str]) -> str:  # the command's --out, under the repository's reports/
-        return os.path.join(reports, os.path.relpath(argv[argv.index("--out") + 1], "reports"))
-
-    if "variance" in commands and os.path.exists(os.path.join(written_to(commands["variance"]),
-                                                              "variance_cartpole_gp.csv")):
-        argv = commands["variance"]
-        scenario_file = argv[argv.index("--scenario-file") + 1]  # relative to the repository's root
-        argv = [os.path.join(ROOT, scenario_file) if a == scenario_file else a for a in argv]
-        rows, _ = variance_rows(argv, written_to(argv))
+    if "variance" in commands and os.path.exists(os.path.join(outs["variance"], "variance_cartpole_gp.csv")):
+        # the scenario file is relative to the repository's root
+        scenario_file = os.path.join(ROOT, flags["variance"]["--scenario-file"])
+        argv = with_flags(commands["variance"], {"--scenario-file": scenario_file})
+        rows, _ = variance_rows(argv, outs["variance"])
         link = "[chaos/variance_cartpole_gp](chaos/variance_cartpole_gp.md)"
         claims += gradient_claims(rows, where, link)
         var = rows.pivot_table(index="particles", columns=["estimator", "delta_theta"], values="variance")
@@ -224,18 +221,15 @@ def chaos_scenario_claims(reports: str) -> list[Claim]:
                             "TP and GR stay low where RP's variance explodes",
                             f"{ends} (P = {var.index.min()}-{var.index.max()})",
                             "numbers only: no rule was fixed before them", link))
-    if "landscape" in commands and os.path.exists(os.path.join(written_to(commands["landscape"]),
-                                                               "landscape_cartpole_gp.csv")):
-        claims.append(lyapunov_claim(found, commands["landscape"], written_to(commands["landscape"]), where))
+    if "landscape" in commands and os.path.exists(os.path.join(outs["landscape"], "landscape_cartpole_gp.csv")):
+        claims.append(lyapunov_claim(found, int(flags["landscape"]["--seed"]), outs["landscape"], where))
     return claims
 
 
-def lyapunov_claim(found: dict, argv: list[str], out: str, where: str) -> Claim:
-    """The landscape at the scenario (its CSV's rows at the scenario's content, particle count and the command
-    ``argv``'s seed): the finite-time Lyapunov exponent and RP_FS's variance along the line, their rank
-    correlation."""
+def lyapunov_claim(found: dict, seed: int, out: str, where: str) -> Claim:
+    """The landscape at the scenario (its CSV's rows at the scenario's content, particle count and ``seed``): the
+    finite-time Lyapunov exponent and RP_FS's variance along the line, their rank correlation."""
     rows = read_csv(os.path.join(out, "landscape_cartpole_gp.csv"))
-    seed = int(argv[argv.index("--seed") + 1])
     line = rows[(rows.scenario == found["content"]) & (rows.particles == found["particles"])
                 & (rows.seed == seed)].sort_values("delta_theta")
     ends = line.iloc[[0, -1]]
@@ -323,7 +317,7 @@ def speed_text(reports: str) -> str:
     if not os.path.exists(os.path.join(reports, "bench.csv")):
         return "Not measured yet: `python -m harness.bench` writes reports/bench.md."
     table, learning = bench.saved_results(reports)
-    lines = bench.target_lines(table, learning, bench_learning.whole_run(os.path.join(reports, bench.WHOLE_RUN)))
+    lines = bench.report_targets(reports, table, learning)
     return "\n".join(["From [reports/bench.md](reports/bench.md) (`python -m harness.bench`, on "
                       f"{table.machine.iloc[0]}); a target not met is what is left.", "", *lines[2:-1]])
 
