@@ -338,6 +338,14 @@ def current_rows(args: Args, table: ResultTable):
                 & (rows.seed == rows.repeat + args.seed)]
 
 
+def remove_checkpoint(checkpoint: str) -> None:
+    """Delete a finished batch's checkpoint, and the ``.pkl`` that older code wrote at its name: its rows are in
+    the table now."""
+    for path in (checkpoint, checkpoint[:-len(".npz")] + ".pkl"):
+        if os.path.exists(path):
+            os.remove(path)
+
+
 def run(args: Args):
     """Run every missing experiment, ``batch`` repeats at a time from ``first_repeat``, appending
     their trials as each batch ends; returns the rows the report pools (``current_rows``)."""
@@ -354,10 +362,7 @@ def run(args: Args):
         # (it is not atomic: success.final_evaluations leaves out an experiment with fewer trials than its settings)
         table.extend([{**row_key(args, task, method, row["repeat"]), **row}
                       for row in run_experiments(args, method, missing)])
-        checkpoint = checkpoint_path(args, method, missing)
-        for path in (checkpoint, checkpoint[:-len(".npz")] + ".pkl"):  # its rows are in the table now
-            if os.path.exists(path):
-                os.remove(path)
+        remove_checkpoint(checkpoint_path(args, method, missing))
         jax.clear_caches()  # each trial compiled its own programs (docs/extending.md: memory mappings)
     return current_rows(args, table)
 

@@ -215,8 +215,7 @@ def merge(unit: Unit, rows: list[dict]) -> int:
     table = ResultTable(args.stem + ".csv", learn.KEY_COLUMNS)
     new = [row for row in rows if not table.has(row)]
     table.extend(new)
-    if os.path.exists(unit.checkpoint()):
-        os.remove(unit.checkpoint())  # its rows are in the table now
+    learn.remove_checkpoint(unit.checkpoint())
     learn_report.write(learn.current_rows(args, table), args.stem,
                        f"python -m harness.sweep (units of harness.learn {' '.join(unit.argv)})")
     if os.path.realpath(os.path.dirname(args.stem)) == os.path.realpath(os.path.join(ROOT, "reports")):
