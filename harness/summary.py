@@ -92,12 +92,24 @@ def learning_findings(reports: str) -> list[tuple[str, str, object, str]]:
     return findings
 
 
+class TableAgreement(NamedTuple):
+    """A learning table's cells whose rate agrees with the paper's (its interval holds it), of those compared."""
+
+    table: str
+    agree: int
+    compared: int
+    outside: tuple[str, ...] = ()
+    """The methods whose interval misses the paper's rate."""
+
+
 class Claim(NamedTuple):
     claim: str
     paper: str
     ours: str
     verdict: str
     report: str
+    cells: TableAgreement | None = None
+    """Set on a learning table's row: the README merges those rows into one (``readme_claims``)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,12 +175,33 @@ def learning_claims(name: str, stem: str, reports: str) -> list[Claim]:
     outside = compared[compared.inside == "no"]
     apart = "; ".join(f"{r.label} {r.rate:.2f} [{r.low:.2f}, {r.high:.2f}] against {r.paper:.2f}"
                       for r in outside.itertuples())
-    verdict = f"agrees in {len(compared) - len(outside)} of {len(compared)} cells"
+    cells = TableAgreement(name, len(compared) - len(outside), len(compared), tuple(outside.label))
     repeats = sorted({int(n) for n in success.n})
     counts = f"{repeats[0]}" if len(repeats) == 1 else f"{repeats[0]}-{repeats[-1]}"
     return [Claim(f"learning, {name}: success rates", "Table 1's column",
-                  f"{counts} repeats per method" + (f"; outside: {apart}" if apart else ""), verdict,
-                  f"[{stem}]({stem}.md)")]
+                  f"{counts} repeats per method" + (f"; outside: {apart}" if apart else ""),
+                  agreement(cells.agree, cells.compared),
+                  f"[{stem}]({stem}.md)", cells)]
+
+
+def agreement(agree: int, compared: int) -> str:
+    return f"agrees in {agree} of {compared} cells"
+
+
+def readme_claims(claims: list[Claim]) -> list[Claim]:
+    """The README's table: ``claims`` with the learning tables' rows (one per table present) merged into one
+    row in place of the first, each table's agreement in it; SUMMARY.md keeps their rows, so that the README stays
+    one page as the tables land."""
+    tables = [c for c in claims if c.cells is not None]
+    if not tables:
+        return claims
+    per_table = "; ".join(f"{c.cells.table}: {c.cells.agree} of {c.cells.compared}"
+                          + (f" (outside: {', '.join(c.cells.outside)})" if c.cells.outside else "") for c in tables)
+    merged = Claim("learning tables at the paper's settings: success rates per cell", "Tables 1-2", per_table,
+                   agreement(sum(c.cells.agree for c in tables), sum(c.cells.compared for c in tables)),
+                   "[SUMMARY](SUMMARY.md), a row per table")
+    first = claims.index(tables[0])
+    return claims[:first] + [merged] + [c for c in claims[first:] if c.cells is None]
 
 
 def reading_claims(reports: str, stem: str = "learn_cartpole_angle_k1") -> list[Claim]:
@@ -289,7 +322,7 @@ def summary_text(claims: list[Claim], reports: str) -> str:
     return "\n".join([
         "# What reproduces", "",
         "Written by `python -m harness.summary` from the committed results (verdict rules: "
-        "`harness/summary.py`). The README shows the same table.", "",
+        "`harness/summary.py`). The README shows the same table, the learning tables' rows merged into one.", "",
         claims_table(claims), "",
         "Every report states its command, settings and scenario; `python -m harness.reproduce` recomputes "
         "them at a small size and compares.", "",
@@ -309,7 +342,7 @@ def readme_with_block(readme: str, start: str, end: str, text: str) -> str:
 
 
 def readme_with_table(readme: str, claims: list[Claim]) -> str:
-    return readme_with_block(readme, CLAIMS_START, CLAIMS_END, claims_table(claims, "reports/"))
+    return readme_with_block(readme, CLAIMS_START, CLAIMS_END, claims_table(readme_claims(claims), "reports/"))
 
 
 def speed_text(reports: str) -> str:
