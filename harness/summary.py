@@ -96,6 +96,8 @@ class TableAgreement(NamedTuple):
     """A learning table's cells whose rate agrees with the paper's (its interval holds it), of those compared."""
 
     table: str
+    repeats: str
+    """Repeats per method: "10", or "5-10" while a table is still being filled."""
     agree: int
     compared: int
     outside: tuple[str, ...] = ()
@@ -175,9 +177,9 @@ def learning_claims(name: str, stem: str, reports: str) -> list[Claim]:
     outside = compared[compared.inside == "no"]
     apart = "; ".join(f"{r.label} {r.rate:.2f} [{r.low:.2f}, {r.high:.2f}] against {r.paper:.2f}"
                       for r in outside.itertuples())
-    cells = TableAgreement(name, len(compared) - len(outside), len(compared), tuple(outside.label))
     repeats = sorted({int(n) for n in success.n})
     counts = f"{repeats[0]}" if len(repeats) == 1 else f"{repeats[0]}-{repeats[-1]}"
+    cells = TableAgreement(name, counts, len(compared) - len(outside), len(compared), tuple(outside.label))
     return [Claim(f"learning, {name}: success rates", "Table 1's column",
                   f"{counts} repeats per method" + (f"; outside: {apart}" if apart else ""),
                   agreement(cells.agree, cells.compared),
@@ -195,7 +197,7 @@ def readme_claims(claims: list[Claim]) -> list[Claim]:
     tables = [c for c in claims if c.cells is not None]
     if not tables:
         return claims
-    per_table = "; ".join(f"{c.cells.table}: {c.cells.agree} of {c.cells.compared}"
+    per_table = "; ".join(f"{c.cells.table} ({c.cells.repeats} repeats): {c.cells.agree} of {c.cells.compared}"
                           + (f" (outside: {', '.join(c.cells.outside)})" if c.cells.outside else "") for c in tables)
     merged = Claim("learning tables at the paper's settings: success rates per cell", "Tables 1-2", per_table,
                    agreement(sum(c.cells.agree for c in tables), sum(c.cells.compared for c in tables)),

@@ -60,15 +60,15 @@ def test_the_readme_merges_the_learning_tables_rows_into_one():
     row = summary.Claim("a gradient claim", "4e5", "x 10", "mixed", "[variance](variance.md)")
     k1 = summary.Claim("learning, cartpole, angle cost, k = 1: success rates", "Table 1's column", "10 repeats",
                        summary.agreement(6, 8), "[k1](k1.md)",
-                       summary.TableAgreement("cartpole, angle cost, k = 1", 6, 8, ("rp_fs", "gr_fs")))
+                       summary.TableAgreement("cartpole, angle cost, k = 1", "10", 6, 8, ("rp_fs", "gr_fs")))
     k16 = k1._replace(claim="learning, cartpole, angle cost, k = 16: success rates",
-                      cells=summary.TableAgreement("cartpole, angle cost, k = 16", 2, 5))
+                      cells=summary.TableAgreement("cartpole, angle cost, k = 16", "5", 2, 5))
     after = summary.Claim("a reading", "0.23", "1.00", "outside", "[r](r.md)")
     merged = summary.readme_claims([row, k1, after, k16])
     assert [c.claim for c in merged] == [row.claim, "learning tables at the paper's settings: success rates per cell",
                                          after.claim]
-    assert merged[1].ours == ("cartpole, angle cost, k = 1: 6 of 8 (outside: rp_fs, gr_fs); "
-                              "cartpole, angle cost, k = 16: 2 of 5")
+    assert merged[1].ours == ("cartpole, angle cost, k = 1 (10 repeats): 6 of 8 (outside: rp_fs, gr_fs); "
+                              "cartpole, angle cost, k = 16 (5 repeats): 2 of 5")
     assert merged[1].verdict == "agrees in 8 of 13 cells"
     assert summary.readme_claims([row, after]) == [row, after]
     assert "(reports/SUMMARY.md)" in summary.claims_table(merged, "reports/")
