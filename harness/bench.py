@@ -174,8 +174,8 @@ def target_lines(table: pd.DataFrame, learning: pd.DataFrame | None, whole: floa
             target = TARGETS[f"{name}_float32_s"]
             lines.append(f"- {name.upper()}, float32, P = 300, N = {at.gp_points[name]}: {at.median_s[name]:.3f} s "
                          f"(target {target:.2f} s: {'met' if at.median_s[name] <= target else 'not met'}); its flops "
-                         f"alone ({at.gflop[name]:.1f} GFLOP) take {floor[name]:.3f} s at this run's float32 matmul rate, "
-                         f"so the target asks for a roofline fraction of {floor[name] / target:.2f}.")
+                         f"alone ({at.gflop[name]:.1f} GFLOP) take {floor[name]:.3f} s at this run's float32 matmul "
+                         f"rate, so the target asks for a roofline fraction of {floor[name] / target:.2f}.")
         reached = at.roofline_fraction["rp"] >= TARGETS["rp_roofline"]
         lines.append(f"- RP's roofline fraction, float32, P = 300: {at.roofline_fraction['rp']:.2f} (goal "
                      f"{TARGETS['rp_roofline']:.1f}: {'met' if reached else 'not met'}).")

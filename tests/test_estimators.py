@@ -515,7 +515,8 @@ def test_float32_rollouts_agree_with_float64_to_the_estimators_noise():
 
     problem, theta = cartpole_gp_problem()
     tp = estimators.make("tp")
-    estimate = jax.jit(jax.vmap(lambda pr, th, k: tp(pr, th, k, 50), in_axes=(None, None, 0)), compiler_options=OPTIMISED)
+    estimate = jax.jit(jax.vmap(lambda pr, th, k: tp(pr, th, k, 50), in_axes=(None, None, 0)),
+                       compiler_options=OPTIMISED)
     n, runs = 200, {}
     for dtype in (jnp.float64, jnp.float32):
         pr = dataclasses.replace(problem, model_params=cast_floating(problem.model_params, dtype))
